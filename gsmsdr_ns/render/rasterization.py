@@ -1,0 +1,239 @@
+"""`rasterization`: gsplat 1.4.0's entry point, with a CPU implementation.
+
+CUDA tensors go to gsplat unchanged (its speed, its kernels). CPU tensors go through our projection, tile
+sorting and either the compiled C++/OpenMP kernel or the pure-PyTorch reference, with the same semantics and the
+same `meta` keys that gsplat's DefaultStrategy reads, so densification and pruning work on CPU too.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Dict, Literal, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from gsmsdr_ns.render.pixels_torch import rasterize_to_pixels_torch
+from gsmsdr_ns.render.projection import covariance_3d, project_gaussians
+from gsmsdr_ns.render.sh import eval_sh_colors
+from gsmsdr_ns.render.tiles import isect_offset_encode, isect_tiles
+
+CpuBackend = Literal["auto", "cpp", "torch"]
+_fallback_warned = False
+
+
+def resolve_cpu_backend(requested: CpuBackend = "auto") -> str:
+    """Pick the CPU pixel kernel: "cpp" when it builds, else "torch" (one warning says why).
+
+    Asking for "cpp" explicitly raises if the extension cannot be built.
+    """
+    global _fallback_warned
+    if requested == "torch":
+        return "torch"
+    if requested not in ("auto", "cpp"):
+        raise ValueError(f"cpu_backend must be 'auto', 'cpp' or 'torch', got {requested!r}")
+    from gsmsdr_ns.render.pixels_cpp import cpp_backend_available, cpp_backend_error
+
+    if cpp_backend_available():
+        return "cpp"
+    reason = cpp_backend_error()
+    if requested == "cpp":
+        raise RuntimeError(f"the C++ CPU rasterizer is unavailable: {reason}")
+    if not _fallback_warned:
+        warnings.warn(
+            f"gsmsdr: C++ CPU rasterizer unavailable ({reason}); using the slower PyTorch rasterizer.",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        _fallback_warned = True
+    return "torch"
+
+
+def rasterize_to_pixels(
+    means2d: Tensor,  # [C, N, 2]
+    conics: Tensor,  # [C, N, 3]
+    colors: Tensor,  # [C, N, D]
+    opacities: Tensor,  # [C, N]
+    image_width: int,
+    image_height: int,
+    tile_size: int,
+    isect_offsets: Tensor,  # [C, th, tw]
+    flatten_ids: Tensor,  # [M]
+    backgrounds: Optional[Tensor] = None,  # [C, D]
+    absgrad: bool = False,
+    backend: CpuBackend = "auto",
+) -> Tuple[Tensor, Tensor]:
+    """Composite sorted screen-space Gaussians on the CPU; see `pixels_torch.rasterize_to_pixels_torch`.
+
+    Returns:
+        render_colors: [C, H, W, D]. render_alphas: [C, H, W, 1].
+    """
+    args = (means2d, conics, colors, opacities, image_width, image_height, tile_size, isect_offsets, flatten_ids)
+    if resolve_cpu_backend(backend) == "cpp":
+        from gsmsdr_ns.render.pixels_cpp import rasterize_to_pixels_cpp
+
+        return rasterize_to_pixels_cpp(*args, backgrounds=backgrounds, absgrad=absgrad)
+    return rasterize_to_pixels_torch(*args, backgrounds=backgrounds, absgrad=absgrad)
+
+
+def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, covars) -> None:
+    N, C = means.shape[0], viewmats.shape[0]
+    expected = {"means": (means, (N, 3)), "opacities": (opacities, (N,)), "viewmats": (viewmats, (C, 4, 4))}
+    expected["Ks"] = (Ks, (C, 3, 3))
+    if covars is None:
+        expected.update(quats=(quats, (N, 4)), scales=(scales, (N, 3)))
+    else:
+        expected["covars"] = (covars, (N, 3, 3))
+    for name, (tensor, shape) in expected.items():
+        if tuple(tensor.shape) != shape:
+            raise ValueError(f"rasterization: {name} must have shape {list(shape)}, got {list(tensor.shape)}")
+    if sh_degree is None:
+        ok = (colors.dim() == 2 and colors.shape[0] == N) or (colors.dim() == 3 and colors.shape[:2] == (C, N))
+        if not ok:
+            raise ValueError(f"rasterization: colors must be [N, D] or [C, N, D] (N={N}, C={C}), got {list(colors.shape)}")
+    else:
+        ok = (colors.dim() == 3 and colors.shape[0] == N) or (colors.dim() == 4 and colors.shape[:2] == (C, N))
+        if not ok or colors.shape[-1] != 3:
+            raise ValueError(
+                f"rasterization: SH colors must be [N, K, 3] or [C, N, K, 3] (N={N}, C={C}), got {list(colors.shape)}"
+            )
+        if (sh_degree + 1) ** 2 > colors.shape[-2]:
+            raise ValueError(f"rasterization: sh_degree={sh_degree} needs {(sh_degree + 1) ** 2} SH coefficients")
+
+
+def rasterization(
+    means: Tensor,  # [N, 3]
+    quats: Tensor,  # [N, 4]
+    scales: Tensor,  # [N, 3]
+    opacities: Tensor,  # [N]
+    colors: Tensor,  # [(C,) N, D] or [(C,) N, K, 3]
+    viewmats: Tensor,  # [C, 4, 4]
+    Ks: Tensor,  # [C, 3, 3]
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    radius_clip: float = 0.0,
+    eps2d: float = 0.3,
+    sh_degree: Optional[int] = None,
+    packed: bool = True,
+    tile_size: int = 16,
+    backgrounds: Optional[Tensor] = None,
+    render_mode: Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"] = "RGB",
+    sparse_grad: bool = False,
+    absgrad: bool = False,
+    rasterize_mode: Literal["classic", "antialiased"] = "classic",
+    channel_chunk: int = 32,
+    distributed: bool = False,
+    camera_model: Literal["pinhole", "ortho", "fisheye"] = "pinhole",
+    covars: Optional[Tensor] = None,
+    cpu_backend: CpuBackend = "auto",
+) -> Tuple[Tensor, Tensor, Dict]:
+    """Rasterize N 3D Gaussians into C images; gsplat 1.4.0's signature and return value.
+
+    Args:
+        means: [N, 3]. quats: [N, 4] (w, x, y, z, normalised here). scales: [N, 3]. opacities: [N].
+        colors: [N, D] / [C, N, D] post-activation colours, or [N, K, 3] / [C, N, K, 3] SH coefficients when
+            `sh_degree` is given (then colours are clamp_min(SH + 0.5, 0), as in 3D-GS).
+        viewmats: [C, 4, 4] world-to-camera. Ks: [C, 3, 3]. width, height: pixels.
+        backgrounds: [C, D] or None. render_mode: "RGB", "D", "ED", "RGB+D" or "RGB+ED" (depth appended last).
+        absgrad: set `meta["means2d"].absgrad` after backward. rasterize_mode: "classic" or "antialiased".
+        cpu_backend: CPU pixel kernel, "auto" (C++ when it builds), "cpp" or "torch". Ignored on CUDA.
+        The other arguments are gsplat's; on CPU, `packed`, `sparse_grad`, `distributed` and non-pinhole camera
+        models are not supported and raise (splatfacto-style callers pass packed=False).
+
+    Returns:
+        render_colors: [C, H, W, D']. render_alphas: [C, H, W, 1]. meta: dict with gsplat's keys (radii,
+        means2d, depths, conics, opacities, tiles_per_gauss, isect_ids, flatten_ids, isect_offsets, width,
+        height, tile_size, n_cameras, ...) plus "backend".
+    """
+    if means.is_cuda:
+        from gsplat.rendering import rasterization as gsplat_rasterization
+
+        colors_out, alphas, meta = gsplat_rasterization(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
+            far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d, sh_degree=sh_degree, packed=packed,
+            tile_size=tile_size, backgrounds=backgrounds, render_mode=render_mode, sparse_grad=sparse_grad,
+            absgrad=absgrad, rasterize_mode=rasterize_mode, channel_chunk=channel_chunk, distributed=distributed,
+            camera_model=camera_model, covars=covars,
+        )  # fmt: skip
+        meta["backend"] = "gsplat"
+        return colors_out, alphas, meta
+
+    unsupported = {"packed=True": packed, "sparse_grad=True": sparse_grad, "distributed=True": distributed}
+    unsupported[f"camera_model={camera_model!r}"] = camera_model != "pinhole"
+    for what, used in unsupported.items():
+        if used:
+            raise ValueError(f"rasterization on CPU does not support {what}; it is CUDA-only (pass packed=False)")
+    if render_mode not in ("RGB", "D", "ED", "RGB+D", "RGB+ED"):
+        raise ValueError(f"rasterization: unknown render_mode {render_mode!r}")
+    if rasterize_mode not in ("classic", "antialiased"):
+        raise ValueError(f"rasterization: unknown rasterize_mode {rasterize_mode!r}")
+    if width <= 0 or height <= 0:
+        raise ValueError(f"rasterization: image size must be positive, got {width}x{height}")
+    _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, covars)
+
+    C, N = viewmats.shape[0], means.shape[0]
+    if covars is None:
+        covars = covariance_3d(quats, scales)
+    proj = project_gaussians(
+        means, covars, viewmats, Ks, width, height, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane,
+        radius_clip=radius_clip, calc_compensations=rasterize_mode == "antialiased",
+    )  # fmt: skip
+    opacities_c = opacities.expand(C, N)
+    if proj.compensations is not None:
+        opacities_c = opacities_c * proj.compensations
+
+    if sh_degree is None:
+        colors_c = colors.expand(C, N, colors.shape[-1]) if colors.dim() == 2 else colors
+    else:
+        cam_centres = torch.linalg.inv(viewmats)[:, :3, 3]  # [C, 3]
+        dirs = means[None, :, :] - cam_centres[:, None, :]  # [C, N, 3]
+        coeffs = colors.expand(C, *colors.shape) if colors.dim() == 3 else colors
+        colors_c = torch.clamp_min(eval_sh_colors(sh_degree, dirs, coeffs) + 0.5, 0.0)
+
+    if render_mode in ("RGB+D", "RGB+ED"):
+        colors_c = torch.cat([colors_c, proj.depths[..., None]], dim=-1)
+        if backgrounds is not None:
+            backgrounds = torch.cat([backgrounds, backgrounds.new_zeros(C, 1)], dim=-1)
+    elif render_mode in ("D", "ED"):
+        colors_c = proj.depths[..., None]
+        if backgrounds is not None:
+            backgrounds = backgrounds.new_zeros(C, 1)
+
+    tile_width, tile_height = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    tiles_per_gauss, isect_ids, flatten_ids = isect_tiles(
+        proj.means2d, proj.radii, proj.depths, tile_size, tile_width, tile_height
+    )
+    isect_offsets = isect_offset_encode(isect_ids, C, tile_width, tile_height)
+    backend = resolve_cpu_backend(cpu_backend)
+    render_colors, render_alphas = rasterize_to_pixels(
+        proj.means2d, proj.conics, colors_c.contiguous(), opacities_c.contiguous(), width, height, tile_size,
+        isect_offsets, flatten_ids, backgrounds=backgrounds, absgrad=absgrad, backend=backend,
+    )  # fmt: skip
+    if render_mode in ("ED", "RGB+ED"):
+        depth = render_colors[..., -1:] / render_alphas.clamp_min(1e-10)
+        render_colors = torch.cat([render_colors[..., :-1], depth], dim=-1)
+
+    meta = {
+        "camera_ids": None,
+        "gaussian_ids": None,
+        "radii": proj.radii,
+        "means2d": proj.means2d,
+        "depths": proj.depths,
+        "conics": proj.conics,
+        "opacities": opacities_c,
+        "tile_width": tile_width,
+        "tile_height": tile_height,
+        "tiles_per_gauss": tiles_per_gauss,
+        "isect_ids": isect_ids,
+        "flatten_ids": flatten_ids,
+        "isect_offsets": isect_offsets,
+        "width": width,
+        "height": height,
+        "tile_size": tile_size,
+        "n_cameras": C,
+        "backend": backend,
+    }
+    return render_colors, render_alphas, meta
