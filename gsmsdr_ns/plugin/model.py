@@ -1,0 +1,351 @@
+"""The ``gsmsdr`` nerfstudio model: splatfacto's Gaussians, densification and losses, rendered by ``gsmsdr_ns.render``.
+
+Differences from ``SplatfactoModel``, each kept as a small override that extends ``super()``:
+
+* device-agnostic: no ``.cuda()``; seed colours are written into the SH coefficients after ``super()`` built the
+  parameters, intrinsics follow the model's device, and ``gsmsdr_ns.render.rasterization`` sends CUDA tensors to
+  gsplat and CPU tensors to our own rasterizer;
+* works offline: LPIPS is built only when torchvision's AlexNet backbone is already in the torch hub cache,
+  otherwise the metric is left out (one warning) instead of crashing on a download;
+* a point cloud that is empty or too small falls back to random initialisation with a warning;
+* a non-finite loss stops training with :class:`NonFiniteLossError` naming the step;
+* checkpoints resize the existing Gaussian parameters in place when loaded, so optimizers built before loading
+  (``ns-train --load-dir``) keep updating the model's parameters.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, Iterator, List, Optional, Tuple, Type, Union
+from urllib.parse import urlparse
+
+import torch
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig
+from torch import Tensor
+
+_lpips_warning_shown = False  # the "LPIPS disabled" warning is shown once per process, however many models are built
+
+GAUSSIAN_PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
+MIN_SEED_POINTS = 4  # splatfacto sizes each Gaussian from its 3 nearest neighbours
+
+
+class GSMSDRWarning(UserWarning):
+    """Degraded but working set-up (no LPIPS, random initialisation)."""
+
+
+class NonFiniteLossError(FloatingPointError):
+    """A training loss became NaN or infinite."""
+
+
+@dataclass
+class GSMSDRModelConfig(SplatfactoModelConfig):
+    """GS-MSDR model: splatfacto's Gaussian parameters and densification, rendered on CPU or GPU."""
+
+    _target: Type = field(default_factory=lambda: GSMSDRModel)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# camera helpers (pure functions)
+
+
+def viewmats_from_camera_to_worlds(camera_to_worlds: Tensor) -> Tensor:
+    """World-to-camera matrices in gsplat's OpenCV convention from nerfstudio camera-to-world poses.
+
+    Args:
+        camera_to_worlds: [C, 3, 4] (or [C, 4, 4]) poses, OpenGL axes (x right, y up, z backwards).
+
+    Returns:
+        [C, 4, 4] world-to-camera matrices with OpenCV axes (x right, y down, z forwards).
+    """
+    if camera_to_worlds.ndim != 3 or camera_to_worlds.shape[-2] not in (3, 4) or camera_to_worlds.shape[-1] != 4:
+        raise ValueError(f"expected camera_to_worlds of shape [C, 3, 4], got {tuple(camera_to_worlds.shape)}")
+    flip_yz = camera_to_worlds.new_tensor([1.0, -1.0, -1.0])
+    rotation = camera_to_worlds[:, :3, :3] * flip_yz  # negate the y and z camera axes
+    translation = camera_to_worlds[:, :3, 3:4]
+    rotation_inv = rotation.transpose(1, 2)
+    translation_inv = -rotation_inv @ translation
+    bottom = camera_to_worlds.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(camera_to_worlds.shape[0], 1, 4)
+    return torch.cat([torch.cat([rotation_inv, translation_inv], dim=2), bottom], dim=1)
+
+
+def intrinsics_at_scale(camera: Cameras, downscale: int, device: torch.device) -> Tuple[Tensor, int, int]:
+    """Pinhole intrinsics and image size of a single camera rendered ``downscale`` times smaller.
+
+    Matches ``Cameras.rescale_output_resolution(1 / downscale)`` (floor rounding) without mutating the camera.
+
+    Returns:
+        K: [1, 3, 3] on ``device``; width; height.
+    """
+    K = camera.get_intrinsics_matrices().reshape(-1, 3, 3).to(device)
+    if downscale > 1:
+        K = torch.cat([K[:, :2] / downscale, K[:, 2:]], dim=1)
+    width = int(camera.width.reshape(-1)[0].item()) // downscale
+    height = int(camera.height.reshape(-1)[0].item()) // downscale
+    return K, width, height
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# LPIPS without downloads
+
+
+def lpips_backbone_cache_path() -> Path:
+    """Where torchvision keeps the AlexNet weights that torchmetrics' default LPIPS needs."""
+    from torchvision.models import AlexNet_Weights
+
+    filename = Path(urlparse(AlexNet_Weights.DEFAULT.url).path).name
+    return Path(torch.hub.get_dir()) / "checkpoints" / filename
+
+
+class LPIPSUnavailable(torch.nn.Module):
+    """Stands in for LPIPS when its backbone weights are not cached; returns NaN, which the model drops."""
+
+    def forward(self, *_args, **_kwargs) -> Tensor:
+        return torch.tensor(float("nan"))
+
+
+@contextlib.contextmanager
+def lpips_disabled() -> Iterator[None]:
+    """While active, torchmetrics' LPIPS class builds an :class:`LPIPSUnavailable` instead of downloading AlexNet.
+
+    splatfacto's ``populate_modules`` imports ``LearnedPerceptualImagePatchSimilarity`` from
+    ``torchmetrics.image.lpip`` when it runs, so swapping the module attribute for the duration of that call is
+    enough; it is restored afterwards.
+    """
+    import torchmetrics.image.lpip as lpip_module
+
+    original = lpip_module.LearnedPerceptualImagePatchSimilarity
+    lpip_module.LearnedPerceptualImagePatchSimilarity = lambda *args, **kwargs: LPIPSUnavailable()  # type: ignore
+    try:
+        yield
+    finally:
+        lpip_module.LearnedPerceptualImagePatchSimilarity = original
+
+
+# ---------------------------------------------------------------------------------------------------------------
+
+
+class GSMSDRModel(SplatfactoModel):
+    """Gaussian splatting model of the ``gsmsdr`` method (see the module docstring)."""
+
+    config: GSMSDRModelConfig
+
+    # -- construction ---------------------------------------------------------------------------------------
+
+    def populate_modules(self) -> None:
+        seed = self._usable_seed_points()
+        original_seed = self.seed_points
+        # Colourless seed: super() then skips its `.cuda()` colour branch; colours are written below.
+        self.seed_points = None if seed is None else (seed[0], seed[1][:0])
+        lpips_path = lpips_backbone_cache_path()
+        with contextlib.nullcontext() if lpips_path.is_file() else lpips_disabled():
+            super().populate_modules()
+        self.seed_points = original_seed
+        if seed is not None:
+            self._init_colours(seed[1])
+        if not self.has_lpips:
+            self._warn_lpips_disabled(lpips_path)
+
+    @staticmethod
+    def _warn_lpips_disabled(lpips_path: Path) -> None:
+        global _lpips_warning_shown
+        if _lpips_warning_shown:
+            return
+        _lpips_warning_shown = True
+        warnings.warn(
+            f"gsmsdr: LPIPS is disabled because its AlexNet backbone is not in the torch hub cache ({lpips_path}) "
+            "and nothing is downloaded at run time. Metrics (ns-eval) report psnr and ssim only. To enable LPIPS, "
+            "place alexnet weights at that path (or set TORCH_HOME to a cache that has them).",
+            GSMSDRWarning,
+            stacklevel=4,
+        )
+
+    def _usable_seed_points(self) -> Optional[Tuple[Tensor, Tensor]]:
+        """The seed point cloud without non-finite points, or None (random initialisation, with a warning)."""
+        if self.config.random_init:
+            return None
+        if self.seed_points is None:
+            problem = "no point cloud was provided"
+        else:
+            xyz, rgb = self.seed_points
+            finite = torch.isfinite(xyz).all(dim=-1)
+            if rgb.shape[0] == xyz.shape[0]:
+                rgb = rgb[finite]
+            else:
+                rgb = rgb[:0]
+            xyz = xyz[finite]
+            if xyz.shape[0] >= MIN_SEED_POINTS:
+                return xyz, rgb
+            problem = f"the point cloud has {xyz.shape[0]} usable points (need at least {MIN_SEED_POINTS})"
+        warnings.warn(
+            f"gsmsdr: {problem}; initialising {self.config.num_random} random Gaussians in a cube of side "
+            f"{self.config.random_scale} instead. Training will converge more slowly; set "
+            "--pipeline.model.num-random / --pipeline.model.random-scale to tune it.",
+            GSMSDRWarning,
+            stacklevel=3,
+        )
+        return None
+
+    @torch.no_grad()
+    def _init_colours(self, rgb: Tensor) -> None:
+        """Set the base colour of each Gaussian from its seed point's 0-255 RGB (no-op without colours)."""
+        features_dc = self.gauss_params["features_dc"]
+        if rgb.shape[0] != features_dc.shape[0]:
+            return
+        rgb = rgb.to(device=features_dc.device, dtype=features_dc.dtype) / 255.0
+        features_dc.copy_(RGB2SH(rgb) if self.config.sh_degree > 0 else torch.logit(rgb, eps=1e-10))
+
+    @property
+    def has_lpips(self) -> bool:
+        return not isinstance(self.lpips, LPIPSUnavailable)
+
+    # -- checkpoints ----------------------------------------------------------------------------------------
+
+    def update_to_step(self, step: int) -> None:
+        """Loading a checkpoint of step ``step``: render with the SH degree training had reached."""
+        self.step = step
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):  # type: ignore[override]
+        """Resize the Gaussian parameters to the checkpoint's count *in place*, then load.
+
+        splatfacto replaces the parameter objects here, which detaches them from optimizers created before loading
+        (trainer resume): those would keep stepping the stale tensors. Keeping the objects avoids that.
+        """
+        count = state_dict["gauss_params.means"].shape[0]
+        for param in self.gauss_params.values():
+            param.data = param.data.new_zeros((count, *param.shape[1:]))
+        return torch.nn.Module.load_state_dict(self, state_dict, strict=strict, assign=assign)
+
+    # -- rendering ------------------------------------------------------------------------------------------
+
+    def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:
+        """Render one camera: ``rgb`` [H, W, 3], ``depth`` [H, W, 1] (eval only), ``accumulation``, ``background``."""
+        if not isinstance(camera, Cameras):
+            raise TypeError(f"gsmsdr renders a nerfstudio Cameras object, got {type(camera).__name__}")
+        if camera.shape[0] != 1:
+            raise ValueError(f"gsmsdr renders one camera at a time, got {camera.shape[0]}")
+
+        K, width, height = intrinsics_at_scale(camera, self._get_downscale_factor(), self.device)
+        gaussians = self._gaussians_in_crop()
+        if gaussians is None:
+            full_width, full_height = int(camera.width.item()), int(camera.height.item())
+            return self.get_empty_outputs(full_width, full_height, self.background_color.to(self.device))
+
+        viewmats = viewmats_from_camera_to_worlds(self._camera_to_worlds(camera))
+        with_depth = self.config.output_depth_during_training or not self.training
+        render, alpha, self.info = self._rasterize(gaussians, viewmats, K, width, height, with_depth)
+        if self.training:
+            self.strategy.step_pre_backward(
+                self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info
+            )
+
+        background = self._get_background_color()
+        rgb = torch.clamp(render[..., :3] + (1.0 - alpha) * background, 0.0, 1.0)
+        if self.config.use_bilateral_grid and self.training and camera.metadata and "cam_idx" in camera.metadata:
+            rgb = self._apply_bilateral_grid(rgb, camera.metadata["cam_idx"], height, width)
+        if not self.training:
+            background = background.expand(height, width, 3)
+        return {
+            "rgb": rgb.squeeze(0),
+            "depth": self._expected_depth(render, alpha) if with_depth else None,
+            "accumulation": alpha.squeeze(0),
+            "background": background,
+        }
+
+    def _camera_to_worlds(self, camera: Cameras) -> Tensor:
+        """[1, 3, 4] pose on the model's device, corrected by the camera optimizer while training."""
+        if self.training:
+            return self.camera_optimizer.apply_to_camera(camera).to(self.device)
+        return camera.camera_to_worlds.to(self.device)
+
+    def _gaussians_in_crop(self) -> Optional[Dict[str, Tensor]]:
+        """The raw Gaussian parameters, restricted to the viewer's crop box at eval time; None if it is empty."""
+        params = {name: self.gauss_params[name] for name in GAUSSIAN_PARAM_NAMES}
+        if self.crop_box is None or self.training:
+            return params
+        inside = self.crop_box.within(self.means).reshape(-1)
+        if not bool(inside.any()):
+            return None
+        return {name: value[inside] for name, value in params.items()}
+
+    def _colours_and_sh_degree(self, gaussians: Dict[str, Tensor]) -> Tuple[Tensor, Optional[int]]:
+        """SH coefficients [N, K, 3] and the degree unlocked so far, or plain RGB [N, 3] when sh_degree is 0."""
+        coefficients = torch.cat([gaussians["features_dc"][:, None, :], gaussians["features_rest"]], dim=1)
+        if self.config.sh_degree == 0:
+            return torch.sigmoid(coefficients[:, 0, :]), None
+        return coefficients, min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+
+    def _rasterize(
+        self, gaussians: Dict[str, Tensor], viewmats: Tensor, K: Tensor, width: int, height: int, with_depth: bool
+    ) -> Tuple[Tensor, Tensor, Dict]:
+        """Activate the parameters and rasterize: render [1, H, W, 3 or 4], alpha [1, H, W, 1], info."""
+        from gsmsdr_ns.render import rasterization  # imported on first render: keeps method discovery light
+
+        colours, sh_degree = self._colours_and_sh_degree(gaussians)
+        return rasterization(
+            means=gaussians["means"],
+            quats=gaussians["quats"],  # normalised by the rasterizer
+            scales=torch.exp(gaussians["scales"]),
+            opacities=torch.sigmoid(gaussians["opacities"]).squeeze(-1),
+            colors=colours,
+            viewmats=viewmats,
+            Ks=K,
+            width=width,
+            height=height,
+            near_plane=0.01,
+            far_plane=1e10,
+            sh_degree=sh_degree,
+            packed=False,
+            render_mode="RGB+ED" if with_depth else "RGB",
+            sparse_grad=False,
+            absgrad=self.strategy.absgrad,
+            rasterize_mode=self.config.rasterize_mode,
+        )
+
+    @staticmethod
+    def _expected_depth(render: Tensor, alpha: Tensor) -> Tensor:
+        """[H, W, 1] expected depth; empty pixels get the farthest rendered depth."""
+        depth = render[..., 3:4]
+        return torch.where(alpha > 0, depth, depth.detach().max()).squeeze(0)
+
+    # -- losses and metrics ---------------------------------------------------------------------------------
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
+        loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
+        if self.training:
+            self._check_finite(loss_dict)
+        return loss_dict
+
+    def _check_finite(self, loss_dict: Dict[str, Tensor]) -> None:
+        values = torch.stack([torch.as_tensor(v).detach().float().sum().cpu() for v in loss_dict.values()])
+        if bool(torch.isfinite(values).all()):
+            return
+        terms = ", ".join(f"{name}={value:.4g}" for name, value in zip(loss_dict, values.tolist()))
+        bad = [name for name, param in self.gauss_params.items() if not bool(torch.isfinite(param).all())]
+        raise NonFiniteLossError(
+            f"gsmsdr: non-finite training loss at step {self.step} ({terms}); non-finite Gaussian parameters: "
+            f"{', '.join(bad) or 'none'}; {self.num_points} Gaussians. Lower the learning rates in --optimizers, "
+            "check the input images and poses, or resume from an earlier checkpoint."
+        )
+
+    def get_image_metrics_and_images(
+        self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
+    ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
+        metrics, images = super().get_image_metrics_and_images(outputs, batch)
+        if not self.has_lpips:
+            for name in ("lpips", "cc_lpips"):
+                metrics.pop(name, None)
+        return metrics, images
+
+
+__all__ = [
+    "GSMSDRModel",
+    "GSMSDRModelConfig",
+    "GSMSDRWarning",
+    "NonFiniteLossError",
+    "intrinsics_at_scale",
+    "viewmats_from_camera_to_worlds",
+]

@@ -1,0 +1,83 @@
+"""Shared session fixtures: a tiny generated scene and one short real ``ns-train gsmsdr`` run on it.
+
+Kept small on purpose. ``trained_run`` is trained once per session (10-30 s on 2 CPU cores) and reused by
+the plugin tests (ns-eval, resume) and the viewer tests; treat its directory as read-only.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import pytest
+
+BIN = Path(sys.executable).parent  # the venv running the tests also holds ns-train / ns-eval / ns-viewer
+
+TINY_SCENE = dict(num_views=10, width=64, height=48, num_points=500, seed=0)
+"""10 views -> nerfstudio's default eval split (every 8th view) holds views 0 and 8; 8 train views."""
+
+TRAIN_STEPS = 60
+TRAIN_FLAGS = (
+    "--machine.device-type", "cpu",
+    "--vis", "tensorboard",  # no viewer server; writes the scalars the tests read
+    "--logging.steps-per-log", "5",
+    "--steps-per-eval-image", "0",
+    "--steps-per-eval-all-images", "0",
+    "--pipeline.model.num-downscales", "0",
+    "--pipeline.model.warmup-length", "10",
+    "--pipeline.model.refine-every", "10",
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class TrainedRun:
+    scene: Path  # the scene directory passed as --data
+    run_dir: Path  # <output-dir>/<experiment>/gsmsdr/<timestamp>
+    config: Path  # run_dir / "config.yml" (for ns-eval / ns-viewer --load-config)
+    checkpoint_dir: Path  # run_dir / "nerfstudio_models"
+    log: str  # ns-train's stdout + stderr
+    steps: int
+
+
+def run_cli(tool: str, args: Sequence[str], cwd: Path, timeout: float = 600) -> subprocess.CompletedProcess:
+    """Run a console script of this venv (``ns-train``, ``ns-eval``, ...) and capture its output as text."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1", COLUMNS="200")
+    return subprocess.run(
+        [str(BIN / tool), *map(str, args)],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def make_tiny_scene(out_dir: Path, **overrides) -> Path:
+    """Generate a tiny procedural scene (``gsmsdr_ns.synth``) into ``out_dir`` and return it."""
+    from gsmsdr_ns.synth.config import SynthSceneConfig
+    from gsmsdr_ns.synth.generate import generate_scene
+
+    return generate_scene(out_dir, SynthSceneConfig(**{**TINY_SCENE, **overrides}))
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 10-view 64x48 scene with 500 sparse points (read-only: copy it before corrupting it)."""
+    return make_tiny_scene(tmp_path_factory.mktemp("scenes") / "tiny")
+
+
+@pytest.fixture(scope="session")
+def trained_run(tiny_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> TrainedRun:
+    """``ns-train gsmsdr`` for 60 CPU steps on ``tiny_scene`` with refinement every 10 steps."""
+    work = tmp_path_factory.mktemp("trained")
+    args = ["gsmsdr", "--data", tiny_scene, "--output-dir", work / "outputs", "--timestamp", "run",
+            "--max-num-iterations", TRAIN_STEPS, "--steps-per-save", TRAIN_STEPS, *TRAIN_FLAGS]  # fmt: skip
+    proc = run_cli("ns-train", args, cwd=work)
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0, f"ns-train failed (exit {proc.returncode}):\n{log[-6000:]}"
+    run_dir = work / "outputs" / tiny_scene.name / "gsmsdr" / "run"
+    return TrainedRun(tiny_scene, run_dir, run_dir / "config.yml", run_dir / "nerfstudio_models", log, TRAIN_STEPS)
