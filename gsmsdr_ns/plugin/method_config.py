@@ -16,7 +16,7 @@ from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
-from gsmsdr_ns.plugin.dataparser import GSMSDRDataParserConfig
+from gsmsdr_ns.plugin.auto_dataparser import GSMSDRAutoDataParserConfig
 from gsmsdr_ns.plugin.model import GSMSDRModelConfig
 
 MAX_STEPS = 30000
@@ -65,7 +65,7 @@ def gsmsdr_trainer_config() -> TrainerConfig:
         machine=MachineConfig(device_type=default_device_type()),
         pipeline=VanillaPipelineConfig(
             datamanager=FullImageDatamanagerConfig(
-                dataparser=GSMSDRDataParserConfig(load_3D_points=True),
+                dataparser=GSMSDRAutoDataParserConfig(),
                 cache_images="gpu",
                 cache_images_type="uint8",
             ),

@@ -2,6 +2,7 @@
 
     gsmsdr-synth --out data/demo --seed 0 --num-views 32
     gsmsdr-synth --out data/demo --preset configs/synth/default.yaml --overwrite
+    gsmsdr-synth --out data/demo-motion --variant motion       # degraded Deblur-NeRF layout (gsmsdr_ns.degrade)
 
 Precedence: built-in defaults < --preset YAML < explicit flags.
 """
@@ -14,6 +15,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import tyro
 from rich.console import Console
@@ -36,15 +38,33 @@ class SynthCLI:
     """Replace an existing non-empty output directory."""
     verbose: bool = False
     """Log every rendered view."""
+    variant: Literal["none", "sharp", "motion", "motion-strong", "defocus", "mixres", "mixed"] = "none"
+    """none: the plain sharp COLMAP scene. Otherwise a Deblur-NeRF layout (images/ with sharp test views every
+    --hold-th view, images_test/, degradation.json) degraded with the built-in preset of that name (sharp: no
+    degradation; mixed: one of motion/defocus/mixres per training view); the degradation seed is --seed."""
+    degrade_preset: Path | None = None
+    """YAML degradation preset (configs/degrade/*.yaml) replacing the variant's built-in one."""
+    hold: int | None = None
+    """Test-view spacing of a variant (default: the preset's, 8)."""
     scene: tyro.conf.OmitArgPrefixes[SynthSceneConfig] = field(default_factory=SynthSceneConfig)
     """Scene parameters (flags without prefix, e.g. --seed, --num-views)."""
 
     def main(self) -> Path:
         t0 = time.perf_counter()
         log = (lambda msg: CONSOLE.log(msg)) if self.verbose else None
-        out = generate_scene(self.out, self.scene, overwrite=self.overwrite, log=log)
+        if self.variant == "none":
+            out = generate_scene(self.out, self.scene, overwrite=self.overwrite, log=log)
+        else:
+            from gsmsdr_ns.degrade import generate_variant, load_preset  # lazy: torch / kornia only when needed
+
+            preset = self.degrade_preset
+            degrade = load_preset(preset) if preset is not None else None
+            out = generate_variant(
+                self.out, self.scene, self.variant, degrade, hold=self.hold, overwrite=self.overwrite, log=log,
+                preset_name=preset.stem if preset is not None else None,
+            )  # fmt: skip
         CONSOLE.print(
-            f"[bold green]wrote {self.scene.num_views} views "
+            f"[bold green]wrote {self.scene.num_views} views{'' if self.variant == 'none' else f' ({self.variant})'} "
             f"({self.scene.width}x{self.scene.height}, seed {self.scene.seed}) to {out} "
             f"in {time.perf_counter() - t0:.1f}s"
         )

@@ -72,6 +72,11 @@ def _commit(tmp: Path, out: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
+# Public names for other writers of scene directories (gsmsdr_ns.degrade) that follow the same atomic protocol.
+check_target = _check_target
+commit_dir = _commit
+
+
 def _write_all(root: Path, cfg: SynthSceneConfig, log: Callable[[str], None]) -> dict:
     """Render and write everything under root (a fresh directory). Returns summary stats."""
     t0 = time.perf_counter()

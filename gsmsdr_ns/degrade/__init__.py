@@ -1,0 +1,85 @@
+"""Degraded captures: motion blur, defocus, mixed resolution and sensor noise applied to a sharp scene, written in
+the Deblur-NeRF layout (sharp test views every `hold`-th view, images_test/ twins, degradation.json).
+
+Public API:
+    DegradeConfig (+ MotionConfig, DefocusConfig, MixresConfig, NoiseConfig), load_preset
+    degrade_scene(input_dir, out_dir, config, overwrite=False) -> Path
+    generate_variant(out_dir, scene_config, variant, ...) -> Path   procedural scene straight to a degraded variant
+    load_source(root) -> SourceScene                                   COLMAP or transforms.json input
+    kernels (pure, [B, C, H, W] tensors): disk_kernel, motion_kernel_from_trajectory, convolve_psf,
+        plane_homography, homography_blur, rotational_shake_blur, defocus_radius, disk_blur, apply_defocus,
+        mixres_factors, apply_mixres, add_noise (+ module twins PSFBlur, RotationalShakeBlur, LayeredDefocus)
+"""
+
+from .config import (
+    EFFECTS,
+    DefocusConfig,
+    DegradeConfig,
+    MixresConfig,
+    MotionConfig,
+    NoiseConfig,
+    load_preset,
+    normalize_effects,
+)
+from .kernels import (
+    LayeredDefocus,
+    PSFBlur,
+    RotationalShakeBlur,
+    add_noise,
+    apply_defocus,
+    apply_mixres,
+    convolve_psf,
+    defocus_radius,
+    disk_blur,
+    disk_kernel,
+    homography_blur,
+    mixres_factors,
+    motion_kernel_from_trajectory,
+    path_extent,
+    plane_homography,
+    radius_levels,
+    rotational_shake_blur,
+)
+from .pipeline import degrade_scene, llff_poses_bounds
+from .source import DegradeInputError, SourceScene, load_source, read_image
+from .trajectory import ShakeTrajectory, calibrated_shake, pixel_paths
+from .variants import VARIANTS, generate_variant
+
+__all__ = [
+    "EFFECTS",
+    "DegradeConfig",
+    "MotionConfig",
+    "DefocusConfig",
+    "MixresConfig",
+    "NoiseConfig",
+    "load_preset",
+    "normalize_effects",
+    "degrade_scene",
+    "generate_variant",
+    "VARIANTS",
+    "llff_poses_bounds",
+    "DegradeInputError",
+    "SourceScene",
+    "load_source",
+    "read_image",
+    "ShakeTrajectory",
+    "calibrated_shake",
+    "pixel_paths",
+    "disk_kernel",
+    "motion_kernel_from_trajectory",
+    "convolve_psf",
+    "plane_homography",
+    "homography_blur",
+    "rotational_shake_blur",
+    "path_extent",
+    "defocus_radius",
+    "disk_blur",
+    "radius_levels",
+    "apply_defocus",
+    "mixres_factors",
+    "apply_mixres",
+    "add_noise",
+    "PSFBlur",
+    "RotationalShakeBlur",
+    "LayeredDefocus",
+]
