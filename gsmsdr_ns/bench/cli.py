@@ -56,8 +56,39 @@ class DegradeBench:
         print(format_table(rows, scene, self.workers))
 
 
+@dataclass
+class KernelsBench:
+    """apply_pixel_kernels vs the F.unfold version (BAGS) at 600x400 RGB: forward+backward time, extra peak memory."""
+
+    kernel_sizes: Tuple[int, ...] = (5, 9, 17)
+    """Kernel sizes K (odd) to measure."""
+    impls: Tuple[str, ...] = ("ours", "unfold")
+    """Implementations: ours (apply_pixel_kernels, C++ on CPU), torch (its PyTorch twin), unfold (BAGS)."""
+    width: int = 600
+    """Image width."""
+    height: int = 400
+    """Image height."""
+    channels: int = 3
+    """Image channels."""
+    batch: int = 1
+    """Batch size."""
+    repeats: int = 5
+    """Timed forward+backward runs per implementation after one warm-up (medians are reported)."""
+    memory_repeats: int = 1
+    """Fresh processes per peak-memory measurement (the median is reported)."""
+
+    def main(self) -> None:
+        from gsmsdr_ns.bench.kernels import format_table, run_kernels_benchmark
+
+        rows = run_kernels_benchmark(self.kernel_sizes, self.impls, self.height, self.width, self.channels,
+                                     self.batch, self.repeats, self.memory_repeats)  # fmt: skip
+        print(format_table(rows, self.height, self.width, self.channels, self.batch, self.repeats))
+
+
 def entrypoint() -> None:
-    tyro.extras.subcommand_cli_from_dict({"raster": RasterBench, "degrade": DegradeBench}).main()
+    tyro.extras.subcommand_cli_from_dict(
+        {"raster": RasterBench, "degrade": DegradeBench, "kernels": KernelsBench}
+    ).main()
 
 
 if __name__ == "__main__":

@@ -1,0 +1,245 @@
+"""The GS-MSDR blur field: MAAN features -> HPKO heads -> per-pixel blur kernels and masks.
+
+``BlurField.forward(render, depth, view_ids, scale)`` predicts, for each pixel of a training view rendered at the
+resolution of HPKO scale s, a K_s x K_s kernel (softmax weights) and a blending mask; ``degrade`` applies them::
+
+    degraded = m * apply_pixel_kernels(render, k) + (1 - m) * render
+
+which is compared with the (blurry) training image. Test views are rendered without the field (sharp).
+
+Modes (paper Table 7):
+
+* ``full``     MAAN (SFE + 2 FANs of GAKA/SAFM) -> MCF -> MCA -> HPKO heads (3 scales);
+* ``msd_only`` HPKO heads on BAGS' plain CNN features (MCF without FANs, no MCA): multi-scale deblurring only;
+* ``re_only``  MAAN features with one full-resolution kernel scale (K_1) and no coarse-to-fine HPKO
+  (= Table 6's "-HPKO" row).
+
+The ablation switches ``gaka``, ``safm``, ``mca``, ``rgbd``, ``hpko`` (Table 6) remove their modules' parameters.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Dict, List, Literal, NamedTuple, Optional, Tuple
+
+from torch import Tensor, nn
+
+from .hpko import HPKOHeads, HPKOScheduler, check_kernel_sizes
+from .kernels import apply_pixel_kernels
+from .maan import MCA, BAGSFeatures, ContextualFeatures, RGBDFeatures
+
+__all__ = ["BlurFieldConfig", "BlurField", "BlurFieldDims", "BlurFieldModules"]
+
+_SIZE_PRESETS = {
+    # feature_dim n, view_dim, pos_channels, mid_channels, num_fans
+    "default": (32, 32, 16, 64, 2),
+    "lite": (16, 16, 8, 32, 2),
+}
+
+
+class BlurFieldDims(NamedTuple):
+    """Resolved widths of a blur field (config values, or the size preset where the config says None)."""
+
+    feature_dim: int
+    view_dim: int
+    pos_channels: int
+    mid_channels: int
+    num_fans: int
+
+
+class BlurFieldModules(NamedTuple):
+    """Which modules a config builds, after the mode is applied (True = present)."""
+
+    maan: bool  # FANs (GAKA / SAFM) as the RGB-D feature network; False: BAGS' plain CNN
+    gaka: bool
+    safm: bool
+    mca: bool
+    rgbd: bool  # depth is an input of the feature network
+    hpko: bool  # coarse-to-fine scales; False: a single full-resolution scale
+
+
+@dataclass
+class BlurFieldConfig:
+    """GS-MSDR blur field (MAAN + HPKO). Plain dataclass (no nerfstudio import); ``setup(**kwargs)`` builds it."""
+
+    mode: Literal["full", "msd_only", "re_only"] = "full"
+    """full: MAAN + HPKO. msd_only: HPKO on BAGS' plain CNN (no GAKA/SAFM/MCA). re_only: MAAN with a single
+    full-resolution kernel scale (no HPKO). The mode overrides the module switches below."""
+    size: Literal["default", "lite"] = "default"
+    """Width preset for fields left at None: default (n=32, view 32, pos 16, mid 64: BAGS' 80-channel MCF) or
+    lite (n=16, view 16, pos 8, mid 32) for CPU training."""
+    feature_dim: Optional[int] = None
+    """FAN width n (channels of the RGB-D features); None: from ``size``."""
+    view_dim: Optional[int] = None
+    """Width of the learnable per-training-view embedding l(i) (0: none); None: from ``size``."""
+    pos_channels: Optional[int] = None
+    """Channels of the 2D sinusoidal positional encoding p(x), a multiple of 4 (0: none); None: from ``size``."""
+    mid_channels: Optional[int] = None
+    """Width of the per-scale base heads M_base^s; None: from ``size``."""
+    num_fans: Optional[int] = None
+    """Number of Feature Attention Networks after the shallow 3x3 extractor (paper: 2); None: from ``size``."""
+    kernel_sizes: Tuple[int, ...] = (5, 9, 17)
+    """Blur kernel size per HPKO scale, coarse to fine (K_3, K_2, K_1); odd, non-decreasing."""
+    gaka: bool = True
+    """Global-Aware Kernel Attention inside each FAN (Table 6 ablation)."""
+    safm: bool = True
+    """Spatial Adaptive Fusion Module inside each FAN (Table 6 ablation)."""
+    mca: bool = True
+    """Multi-modal Context Adapter on the contextual features (Table 6 ablation)."""
+    rgbd: bool = True
+    """Feed the normalised rendered depth to the feature network (Table 6 "RGBD"); False: RGB only, no depth
+    is read or normalised."""
+    hpko: bool = True
+    """Coarse-to-fine kernel scales (Table 6 "HPKO"); False: one full-resolution scale with the finest kernel."""
+    mca_pool_size: int = 8
+    """Output grid (P x P) of MCA's adaptive average pooling for the spatial context weights."""
+    msd_hidden: int = 64
+    """Hidden width of BAGS' plain CNN (msd_only mode)."""
+    layer_scale_init: float = 0.1
+    """Initial value of the learnable residual scales of GAKA and SAFM."""
+    detach_inputs: bool = True
+    """Feed detached render and depth to the feature network (BAGS); gradients reach the Gaussians through the
+    kernel application only."""
+    mask_reg_weight: float = 0.001
+    """Weight of the mask regulariser mean(m) (BAGS: 0.001)."""
+    warmup: int = 250
+    """The blur field is skipped for the first ``warmup`` steps (BAGS: 250)."""
+    switch_steps: Optional[Tuple[int, ...]] = None
+    """Steps where HPKO goes one scale finer; None: follow the model's resolution schedule (recommended)."""
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("full", "msd_only", "re_only"):
+            raise ValueError(f"mode must be full, msd_only or re_only, got {self.mode!r}")
+        if self.size not in _SIZE_PRESETS:
+            raise ValueError(f"size must be one of {sorted(_SIZE_PRESETS)}, got {self.size!r}")
+        check_kernel_sizes(self.kernel_sizes)
+        dims = self.dims
+        if dims.feature_dim < 2 or dims.mid_channels < 1 or dims.view_dim < 0 or dims.num_fans < 0:
+            raise ValueError(f"invalid blur field widths {dims}")
+        if dims.pos_channels < 0 or dims.pos_channels % 4:
+            raise ValueError(f"pos_channels must be a non-negative multiple of 4, got {dims.pos_channels}")
+
+    @property
+    def dims(self) -> BlurFieldDims:
+        preset = _SIZE_PRESETS[self.size]
+        values = (self.feature_dim, self.view_dim, self.pos_channels, self.mid_channels, self.num_fans)
+        return BlurFieldDims(*(p if v is None else int(v) for v, p in zip(values, preset)))
+
+    @property
+    def modules(self) -> BlurFieldModules:
+        if self.mode == "msd_only":
+            return BlurFieldModules(False, False, False, False, self.rgbd, self.hpko)
+        if self.mode == "re_only":
+            return BlurFieldModules(True, self.gaka, self.safm, self.mca, self.rgbd, False)
+        return BlurFieldModules(True, self.gaka, self.safm, self.mca, self.rgbd, self.hpko)
+
+    def make_scheduler(self, num_downscales: int = 2, resolution_schedule: int = 3000) -> HPKOScheduler:
+        """The HPKO scheduler for a model rendering with splatfacto's ``num_downscales`` / ``resolution_schedule``."""
+        return HPKOScheduler(
+            kernel_sizes=tuple(self.kernel_sizes),
+            num_downscales=num_downscales,
+            resolution_schedule=resolution_schedule,
+            switch_steps=self.switch_steps,
+            warmup=self.warmup,
+            enabled=self.modules.hpko,
+        )
+
+    def setup(self, **kwargs: Any) -> "BlurField":
+        """Build the field; kwargs are run-time values (``num_train_views``, optional ``use_depth``)."""
+        return BlurField(self, **kwargs)
+
+
+class BlurField(nn.Module):
+    """Per-pixel blur kernels and masks for training views (GS-MSDR).
+
+    Args:
+        config: the field's hyperparameters.
+        num_train_views: rows of the view embedding; ``view_ids`` index training views in [0, num_train_views).
+        use_depth: False forces an RGB-only feature network (e.g. the degradation profile says depth does not
+            matter); None follows ``config.rgbd``. Depth is used only when both allow it.
+    """
+
+    def __init__(self, config: BlurFieldConfig, num_train_views: int, use_depth: Optional[bool] = None) -> None:
+        super().__init__()
+        self.config = config
+        mods, dims = config.modules, config.dims
+        self.uses_depth = mods.rgbd and (use_depth is None or bool(use_depth))
+        in_ch = 4 if self.uses_depth else 3
+        if mods.maan:
+            net: nn.Module = RGBDFeatures(
+                in_ch, dims.feature_dim, dims.num_fans, mods.gaka, mods.safm, config.layer_scale_init
+            )
+        else:
+            net = BAGSFeatures(in_ch, dims.feature_dim, config.msd_hidden)
+        self.mcf = ContextualFeatures(num_train_views, dims.view_dim, dims.pos_channels, net, config.detach_inputs)
+        channels = self.mcf.out_channels
+        self.mca = MCA(channels, config.mca_pool_size) if mods.mca else None
+        self.scales: Tuple[int, ...] = tuple(range(len(config.kernel_sizes), 0, -1)) if mods.hpko else (1,)
+        self.heads = HPKOHeads(channels, dims.mid_channels, config.kernel_sizes, self.scales)
+
+    @property
+    def num_train_views(self) -> int:
+        return self.mcf.num_views
+
+    def kernel_size(self, scale: int) -> int:
+        """K_s of an active scale."""
+        if scale not in self.scales:
+            raise ValueError(f"scale {scale} is not one of this field's scales {self.scales}")
+        return self.heads.kernel_sizes[scale]
+
+    def features(self, render: Tensor, depth: Optional[Tensor], view_ids: Tensor) -> Tensor:
+        """MCF (-> MCA) features. render [B,3,H,W], depth [B,1,H,W] or None, view_ids [B] -> [B, C, H, W]."""
+        f = self.mcf(render, depth if self.uses_depth else None, view_ids)
+        return self.mca(f) if self.mca is not None else f
+
+    def forward(
+        self,
+        render: Tensor,  # [B, 3, H, W]
+        depth: Optional[Tensor],  # [B, 1, H, W] or None
+        view_ids: Tensor,  # [B] int
+        scale: int,
+    ) -> Tuple[Tensor, Tensor]:
+        """Kernels and masks for ``render`` (already at scale ``scale``'s resolution).
+
+        Returns:
+            kernel_weights: [B, K_s * K_s, H, W], softmax over dim 1 (sums to 1), row-major window index.
+            mask: [B, 1, H, W] in (0, 1).
+        """
+        return self.heads(self.features(render, depth, view_ids), scale)
+
+    @staticmethod
+    def degrade(render: Tensor, kernel_weights: Tensor, mask: Tensor) -> Tensor:
+        """``m * apply_pixel_kernels(render, k) + (1 - m) * render``.
+
+        Args:
+            render: [B, C, H, W] (not detached: gradients reach the Gaussians).
+            kernel_weights: [B, K*K, H, W].
+            mask: [B, 1, H, W].
+        Returns:
+            [B, C, H, W]
+        """
+        if mask.dim() != 4 or mask.shape[1] != 1 or mask.shape[-2:] != render.shape[-2:]:
+            raise ValueError(f"mask must be [B, 1, H, W] matching render {list(render.shape)}, got {list(mask.shape)}")
+        return mask * apply_pixel_kernels(render, kernel_weights) + (1.0 - mask) * render
+
+    # -------------------------------------------------------------------- nerfstudio-style shared-dict hooks
+
+    def mask_loss(self, mask: Tensor) -> Tensor:
+        """Mask regulariser ``mask_reg_weight * mean(m)`` (pushes unneeded blending toward the sharp render)."""
+        return self.config.mask_reg_weight * mask.mean()
+
+    def get_loss_dict(self, loss_dict: Dict[str, Tensor], mask: Optional[Tensor]) -> Dict[str, Tensor]:
+        """Add ``blur_mask_reg`` to ``loss_dict`` (nothing when the field did not run, mask None)."""
+        if mask is not None and self.config.mask_reg_weight > 0:
+            loss_dict["blur_mask_reg"] = self.mask_loss(mask)
+        return loss_dict
+
+    def get_param_groups(self, param_groups: Dict[str, List[nn.Parameter]]) -> Dict[str, List[nn.Parameter]]:
+        """Add the ``blur_field`` group (BAGS trains it with Adam, lr 5e-4 constant)."""
+        param_groups["blur_field"] = list(self.parameters())
+        return param_groups
+
+    def parameters_for_scale(self, scale: int) -> List[nn.Parameter]:
+        """Parameters that take part in ``forward(..., scale)`` (feature network, MCA and that scale's heads)."""
+        shared = list(self.mcf.parameters()) + (list(self.mca.parameters()) if self.mca is not None else [])
+        return shared + list(self.heads.parameters_for_scale(scale))

@@ -1,0 +1,209 @@
+"""HPKO: Hierarchical Progressive Kernel Optimization (paper section 3.3, Table 1, section 4.1).
+
+Scales are numbered as in the paper: s = 3 (coarsest, images downsampled by 2^(s-1) = 4, kernel K_3 = 5),
+s = 2 (1/2, K_2 = 9), s = 1 (full resolution, K_1 = 17). Kernel sizes are given coarse to fine, so
+``kernel_sizes[num_scales - s]`` is K_s.
+
+* :class:`HPKOHeads` holds the per-scale heads M_base^s, M_blur^s, M_mask^s (1x1 convs, i.e. per-pixel MLPs).
+* :class:`HPKOScheduler` says which scale is active. It holds hyperparameters only; running state lives in the
+  plain dict from ``initialize_state()`` (gsplat ``DefaultStrategy`` style). The model should ask
+  ``scale_for_downscale(d)`` with the downscale factor it is actually rendering at, so that the kernel scale can
+  never drift from splatfacto's resolution schedule.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Dict, NamedTuple, Optional, Sequence, Tuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+__all__ = ["ScaleInfo", "downsample_for_scale", "check_kernel_sizes", "HPKOScheduler", "HPKOHeads"]
+
+
+class ScaleInfo(NamedTuple):
+    """One HPKO scale: its index s, kernel size K_s and image downsample factor 2^(s-1)."""
+
+    scale: int
+    kernel_size: int
+    downsample: int
+
+
+def downsample_for_scale(scale: int) -> int:
+    """Image downsample factor of scale s: 2^(s-1)."""
+    if scale < 1:
+        raise ValueError(f"HPKO scales start at 1, got {scale}")
+    return 2 ** (scale - 1)
+
+
+def check_kernel_sizes(kernel_sizes: Sequence[int]) -> Tuple[int, ...]:
+    """Validate coarse-to-fine kernel sizes: non-empty, odd, >= 1 and non-decreasing. Returns them as a tuple."""
+    ks = tuple(int(k) for k in kernel_sizes)
+    if not ks or any(k < 1 or k % 2 == 0 for k in ks):
+        raise ValueError(f"kernel sizes must be odd integers >= 1, got {list(kernel_sizes)}")
+    if any(b < a for a, b in zip(ks, ks[1:])):
+        raise ValueError(f"kernel sizes are listed coarse to fine and must not decrease, got {list(ks)}")
+    return ks
+
+
+@dataclass
+class HPKOScheduler:
+    """Which HPKO scale is trained at a given step.
+
+    Default: the scale follows splatfacto's resolution schedule (downscale ``2^max(num_downscales - step //
+    resolution_schedule, 0)``), i.e. with the defaults s = 3 before step 3000, s = 2 before 6000, then s = 1.
+    ``switch_steps`` overrides that with explicit steps. With ``enabled=False`` (no HPKO, RE-only) there is a
+    single scale, s = 1 with the finest kernel, at every step.
+    """
+
+    kernel_sizes: Tuple[int, ...] = (5, 9, 17)
+    """Kernel size per scale, coarse to fine (K_3, K_2, K_1)."""
+    num_downscales: int = 2
+    """splatfacto's ``num_downscales``: training starts at 1 / 2^num_downscales resolution."""
+    resolution_schedule: int = 3000
+    """splatfacto's ``resolution_schedule``: steps between resolution doublings."""
+    switch_steps: Optional[Tuple[int, ...]] = None
+    """Steps at which the scale goes one level finer (len = number of scales - 1, increasing); None: derived
+    from the resolution schedule."""
+    warmup: int = 250
+    """The blur field is skipped for steps < warmup (BAGS: 250)."""
+    enabled: bool = True
+    """False: no coarse-to-fine HPKO, one full-resolution scale with the finest kernel size."""
+
+    def __post_init__(self) -> None:
+        self.kernel_sizes = check_kernel_sizes(self.kernel_sizes)
+        if self.switch_steps is not None:
+            self.switch_steps = tuple(int(s) for s in self.switch_steps)
+            if len(self.switch_steps) != len(self.kernel_sizes) - 1 or any(
+                b <= a for a, b in zip(self.switch_steps, self.switch_steps[1:])
+            ):
+                raise ValueError(
+                    f"switch_steps must hold {len(self.kernel_sizes) - 1} increasing steps (one per scale change), "
+                    f"got {list(self.switch_steps)}"
+                )
+        if self.num_downscales < 0 or self.resolution_schedule < 1 or self.warmup < 0:
+            raise ValueError("num_downscales and warmup must be >= 0 and resolution_schedule >= 1")
+
+    # ------------------------------------------------------------------------------------------ pure queries
+
+    @property
+    def scales(self) -> Tuple[int, ...]:
+        """Active scale indices, coarse to fine: (3, 2, 1) by default, (1,) without HPKO."""
+        return tuple(range(len(self.kernel_sizes), 0, -1)) if self.enabled else (1,)
+
+    def info(self, scale: int) -> ScaleInfo:
+        """ScaleInfo of scale s."""
+        if scale not in self.scales:
+            raise ValueError(f"scale {scale} is not one of the active scales {self.scales}")
+        return ScaleInfo(scale, self.kernel_sizes[len(self.kernel_sizes) - scale], downsample_for_scale(scale))
+
+    def downscale_for_step(self, step: int) -> int:
+        """splatfacto's training downscale factor at ``step`` (``SplatfactoModel._get_downscale_factor``)."""
+        return 2 ** max(self.num_downscales - step // self.resolution_schedule, 0)
+
+    def scale_for_step(self, step: int) -> ScaleInfo:
+        """The scale to train at ``step`` (pure: the same answer whatever happened before)."""
+        if not self.enabled:
+            return self.info(1)
+        if self.switch_steps is None:
+            return self.scale_for_downscale(self.downscale_for_step(step))
+        finer = sum(1 for s in self.switch_steps if step >= s)
+        return self.info(len(self.kernel_sizes) - finer)
+
+    def scale_for_downscale(self, downscale: float) -> ScaleInfo:
+        """The scale matching a render downscale factor d (a power of two): s = log2(d) + 1, clamped to the
+        coarsest scale (a render coarser than 2^(S-1) still uses K_S). Always s = 1 without HPKO."""
+        if not self.enabled:
+            return self.info(1)
+        level = math.log2(float(downscale)) if downscale > 0 else float("nan")
+        if not (level >= 0 and abs(level - round(level)) < 1e-6):
+            raise ValueError(f"downscale factor must be a power of two >= 1, got {downscale}")
+        return self.info(min(int(round(level)) + 1, len(self.kernel_sizes)))
+
+    def is_active(self, step: int) -> bool:
+        """Whether the blur field runs at ``step`` (False during warm-up)."""
+        return step >= self.warmup
+
+    # ------------------------------------------------------------------------------------------ running state
+
+    def initialize_state(self) -> Dict[str, Any]:
+        """Running state: current scale (None before the first active step), the step each scale was first used
+        at (``{s: step}``, for logging / optimizer resets) and the last step seen."""
+        return {
+            "scale": None,
+            "kernel_size": None,
+            "downsample": None,
+            "first_step": {},
+            "last_step": None,
+            "switched": False,
+        }
+
+    def update(self, state: Dict[str, Any], step: int, downscale: Optional[float] = None) -> Optional[ScaleInfo]:
+        """Advance ``state`` to ``step``; returns the ScaleInfo to use, or None during warm-up (blur field off).
+
+        ``downscale`` is the factor the model renders at this step; when given (recommended) it decides the scale,
+        otherwise ``scale_for_step`` does. ``state["switched"]`` is True on the step where the scale changed.
+        """
+        state["last_step"] = step
+        state["switched"] = False
+        if not self.is_active(step):
+            return None
+        info = self.scale_for_step(step) if downscale is None else self.scale_for_downscale(downscale)
+        if info.scale != state["scale"]:
+            state["switched"] = state["scale"] is not None
+            state["first_step"].setdefault(info.scale, step)
+        state["scale"], state["kernel_size"], state["downsample"] = info
+        return info
+
+
+class HPKOHeads(nn.Module):
+    """Per-scale heads (paper eqs. 11-13), stacked coarse to fine as in BAGS.
+
+    ``M_base^S`` maps the MCF/MCA features to ``mid`` channels (1x1 conv + ReLU); each finer scale's base takes the
+    previous (coarser) base output: ``f_mid^s = M_base^s(f_mid^(s+1))``, so a finer scale starts from what the
+    coarser one learnt. ``k^s = softmax_K(M_blur^s(f_mid^s))`` (K_s^2 channels) and
+    ``m^s = sigmoid(M_mask^s(f_mid^s))``.
+
+    ``forward(features [B, C, H, W], scale) -> (kernel_weights [B, K_s^2, H, W], mask [B, 1, H, W])``.
+    Kernel index k = i * K + j is row i, column j of the K x K window (row-major, like ``F.unfold``).
+    """
+
+    def __init__(self, in_channels: int, mid_channels: int, kernel_sizes: Sequence[int], scales: Sequence[int]):
+        super().__init__()
+        ks = check_kernel_sizes(kernel_sizes)
+        self.scales = tuple(scales)  # coarse to fine
+        self.kernel_sizes = {s: ks[len(ks) - s] for s in self.scales}
+        self.base = nn.ModuleDict()
+        self.blur = nn.ModuleDict()
+        self.mask = nn.ModuleDict()
+        c = in_channels
+        for s in self.scales:
+            k = self.kernel_sizes[s]
+            self.base[str(s)] = nn.Sequential(nn.Conv2d(c, mid_channels, 1), nn.ReLU())
+            self.blur[str(s)] = nn.Conv2d(mid_channels, k * k, 1)
+            self.mask[str(s)] = nn.Conv2d(mid_channels, 1, 1)
+            c = mid_channels
+
+    def forward(self, features: Tensor, scale: int) -> Tuple[Tensor, Tensor]:
+        if scale not in self.scales:
+            raise ValueError(f"scale {scale} is not one of this field's scales {self.scales}")
+        f = features
+        for s in self.scales:  # coarse to fine, stop at the requested scale
+            f = self.base[str(s)](f)
+            if s == scale:
+                break
+        weights = F.softmax(self.blur[str(scale)](f), dim=1)
+        mask = torch.sigmoid(self.mask[str(scale)](f))
+        return weights, mask
+
+    def parameters_for_scale(self, scale: int):
+        """The head parameters that take part in ``forward(., scale)``."""
+        for s in self.scales:
+            yield from self.base[str(s)].parameters()
+            if s == scale:
+                break
+        yield from self.blur[str(scale)].parameters()
+        yield from self.mask[str(scale)].parameters()

@@ -1,0 +1,278 @@
+"""Apply per-pixel K x K blur kernels to an image (the BAGS / HPKO kernel application step) without unfold.
+
+Convention, shared by every implementation here. With ``p = K // 2`` and the row-major kernel index
+``k = i * K + j`` (``i`` the kernel row, ``j`` the kernel column, both in ``[0, K)``)::
+
+    out[b, c, y, x] = sum_{i, j} weights[b, i * K + j, y, x]
+                      * image[b, c, clamp(y + i - p, 0, H - 1), clamp(x + j - p, 0, W - 1)]
+
+that is, kernel entry (i, j) weighs the pixel ``(i - p)`` rows below and ``(j - p)`` columns right of the output
+pixel (a correlation, not a flipped convolution), and pixels outside the image take the value of the nearest border
+pixel (replicate padding, ``F.pad(image, (p, p, p, p), mode="replicate")``). This is exactly the channel order of
+``F.unfold(padded, K)`` viewed as ``[B, C, K*K, H*W]``, which is how BAGS applies its blur proposal network's kernels
+(`apply_pixel_kernels_unfold`). Weights are used as given: no normalisation, any sign.
+
+Cost. The unfold version materialises all K*K shifted copies of the image (17 x 17 at 600x400 RGB: 832 MB of
+patches, plus as much again for the product and twice more in the backward). `apply_pixel_kernels` never allocates
+anything of size K*K x image beyond the gradient of ``weights`` itself: the forward accumulates one shifted row at a
+time and the backward recomputes the shifts. On CPU (float32 / float64) it runs a C++/OpenMP kernel with one
+parallel region per call (`gsmsdr_ns.blur.kernels_cpp`); elsewhere (CUDA, half precision, no compiler) a PyTorch
+twin that loops over the K*K offsets, one shifted view of the padded image at a time. `gsmsdr-bench kernels` measures
+both against the unfold version.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Literal, Optional, Tuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+from torch.autograd.function import once_differentiable
+
+PixelKernelBackend = Literal["auto", "cpp", "torch"]
+_CPP_DTYPES = (torch.float32, torch.float64)
+_fallback_warned = False
+
+
+def pixel_kernel_size(num_channels: int) -> int:
+    """The odd kernel size K with ``K * K == num_channels``.
+
+    Raises:
+        ValueError: ``num_channels`` is not the square of an odd positive integer.
+    """
+    K = math.isqrt(num_channels) if num_channels > 0 else 0
+    if K * K != num_channels or K % 2 == 0:
+        raise ValueError(
+            f"weights: expected K*K channels for an odd kernel size K (1, 9, 25, 49, ...), got {num_channels}"
+            + (f" (= {K}*{K}, K is even)" if K > 0 and K * K == num_channels else " (not a square)")
+        )
+    return K
+
+
+def _check_inputs(image: Tensor, weights: Tensor) -> int:
+    """Validate shapes, dtypes and devices; return K. Errors name the expected and the actual shapes."""
+    if not isinstance(image, Tensor) or not isinstance(weights, Tensor):
+        raise TypeError(f"image and weights must be tensors, got {type(image).__name__}, {type(weights).__name__}")
+    if image.dim() != 4:
+        raise ValueError(f"image: expected shape [B, C, H, W], got {list(image.shape)}")
+    if weights.dim() != 4:
+        raise ValueError(f"weights: expected shape [B, K*K, H, W], got {list(weights.shape)}")
+    B, C, H, W = image.shape
+    if H < 1 or W < 1:
+        raise ValueError(f"image: expected H >= 1 and W >= 1, got shape {list(image.shape)}")
+    K = pixel_kernel_size(weights.shape[1])
+    if weights.shape[0] != B or tuple(weights.shape[2:]) != (H, W):
+        raise ValueError(
+            f"weights: expected shape [B, K*K, H, W] = {[B, K * K, H, W]} to match image {list(image.shape)}, "
+            f"got {list(weights.shape)}"
+        )
+    if not image.is_floating_point() or weights.dtype != image.dtype:
+        raise ValueError(
+            f"image and weights: expected the same floating-point dtype, got {image.dtype} and {weights.dtype}"
+        )
+    if weights.device != image.device:
+        raise ValueError(f"image and weights: expected the same device, got {image.device} and {weights.device}")
+    return K
+
+
+def _resolve_backend(image: Tensor, backend: PixelKernelBackend) -> str:
+    """"cpp" for CPU float32/float64 tensors when the extension builds, else "torch" (one warning says why)."""
+    global _fallback_warned
+    if backend == "torch":
+        return "torch"
+    if backend not in ("auto", "cpp"):
+        raise ValueError(f"backend: expected 'auto', 'cpp' or 'torch', got {backend!r}")
+    supported = image.device.type == "cpu" and image.dtype in _CPP_DTYPES
+    if not supported:
+        if backend == "cpp":
+            raise ValueError(
+                f"backend='cpp' needs CPU float32/float64 tensors, got {image.dtype} on {image.device}"
+            )
+        return "torch"
+    from gsmsdr_ns.blur.kernels_cpp import pixel_kernels_cpp_available, pixel_kernels_cpp_error
+
+    if pixel_kernels_cpp_available():
+        return "cpp"
+    reason = pixel_kernels_cpp_error()
+    if backend == "cpp":
+        raise RuntimeError(f"the C++ pixel-kernel op is unavailable: {reason}")
+    if not _fallback_warned:
+        warnings.warn(
+            f"gsmsdr: C++ pixel-kernel op unavailable ({reason}); using the PyTorch loop (slower on busy CPUs).",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        _fallback_warned = True
+    return "torch"
+
+
+def _replicate_pad_adjoint(grad_padded: Tensor, p: int) -> Tensor:
+    """Adjoint of ``F.pad(x, (p, p, p, p), mode="replicate")``: [B, C, H+2p, W+2p] -> [B, C, H, W].
+
+    The margin rows are summed onto the first / last row, then the margin columns (corners included, as they were
+    folded into the margin columns of those rows) onto the first / last column.
+    """
+    if p == 0:
+        return grad_padded
+    Hp, Wp = grad_padded.shape[-2:]
+    H, W = Hp - 2 * p, Wp - 2 * p
+    rows = grad_padded[..., p : p + H, :].clone()  # [B, C, H, W+2p]
+    rows[..., 0, :] += grad_padded[..., :p, :].sum(-2)
+    rows[..., H - 1, :] += grad_padded[..., p + H :, :].sum(-2)
+    out = rows[..., p : p + W].clone()  # [B, C, H, W]
+    out[..., 0] += rows[..., :p].sum(-1)
+    out[..., W - 1] += rows[..., p + W :].sum(-1)
+    return out
+
+
+class _PixelKernelsTorch(torch.autograd.Function):
+    """Device-agnostic twin: loops over the K*K offsets, one strided view of the padded image at a time.
+
+    Extra memory: the padded image, one [B, C, H, W] temporary and the padded image gradient, besides the outputs.
+    Each offset is a separate op; on a CPU shared with other processes every op's OpenMP barrier can stall, which
+    is why CPU tensors normally take the C++ kernel.
+    """
+
+    @staticmethod
+    def forward(ctx, image: Tensor, weights: Tensor, K: int) -> Tensor:
+        H, W = image.shape[-2:]
+        p = K // 2
+        padded = F.pad(image, (p, p, p, p), mode="replicate")  # [B, C, H+2p, W+2p]
+        out = torch.zeros_like(image, memory_format=torch.contiguous_format)
+        for i in range(K):
+            for j in range(K):
+                k = i * K + j
+                out.addcmul_(padded[:, :, i : i + H, j : j + W], weights[:, k : k + 1])
+        ctx.K = K
+        ctx.save_for_backward(image, weights)
+        return out
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_out: Tensor) -> Tuple[Optional[Tensor], Optional[Tensor], None]:
+        image, weights = ctx.saved_tensors
+        K = ctx.K
+        B, C, H, W = image.shape
+        p = K // 2
+        grad_image = grad_weights = None
+        if ctx.needs_input_grad[1]:
+            # grad_weights[:, k] = sum_c grad_out[:, c] * shifted_k(image)[:, c]
+            padded = F.pad(image, (p, p, p, p), mode="replicate")
+            grad_weights = torch.empty_like(weights, memory_format=torch.contiguous_format)
+            for i in range(K):
+                for j in range(K):
+                    shifted = padded[:, :, i : i + H, j : j + W]
+                    dst = grad_weights[:, i * K + j]  # [B, H, W]
+                    torch.mul(grad_out[:, 0], shifted[:, 0], out=dst)
+                    for c in range(1, C):
+                        dst.addcmul_(grad_out[:, c], shifted[:, c])
+        if ctx.needs_input_grad[0]:
+            # shift every grad_out * weights[:, k] back into a padded buffer, then fold its margins onto the border
+            grad_padded = image.new_zeros(B, C, H + 2 * p, W + 2 * p)
+            for i in range(K):
+                for j in range(K):
+                    k = i * K + j
+                    grad_padded[:, :, i : i + H, j : j + W].addcmul_(grad_out, weights[:, k : k + 1])
+            grad_image = _replicate_pad_adjoint(grad_padded, p)
+        return grad_image, grad_weights, None
+
+
+class _PixelKernelsCpp(torch.autograd.Function):
+    """C++ forward / backward (`kernels_cpp`); inputs are made contiguous here so gradients reach the caller's."""
+
+    @staticmethod
+    def forward(ctx, image: Tensor, weights: Tensor, K: int) -> Tensor:
+        from gsmsdr_ns.blur.kernels_cpp import pixel_kernels_fwd_cpp
+
+        image_c, weights_c = image.contiguous(), weights.contiguous()
+        ctx.K = K
+        ctx.save_for_backward(image_c, weights_c)
+        return pixel_kernels_fwd_cpp(image_c, weights_c, K)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_out: Tensor) -> Tuple[Optional[Tensor], Optional[Tensor], None]:
+        from gsmsdr_ns.blur.kernels_cpp import pixel_kernels_bwd_cpp
+
+        image, weights = ctx.saved_tensors
+        need_image, need_weights = ctx.needs_input_grad[:2]
+        grad_image, grad_weights = pixel_kernels_bwd_cpp(
+            grad_out.contiguous(), image, weights, ctx.K, need_image, need_weights
+        )
+        return grad_image, grad_weights, None
+
+
+def apply_pixel_kernels(
+    image: Tensor,  # [B, C, H, W]
+    weights: Tensor,  # [B, K*K, H, W]
+    backend: PixelKernelBackend = "auto",
+) -> Tensor:  # [B, C, H, W]
+    """Blur every pixel with its own K x K kernel, replicate border, without materialising K*K image copies.
+
+    ``out[b, c, y, x] = sum_{i,j} weights[b, i*K + j, y, x] * image[b, c, clamp(y+i-p), clamp(x+j-p)]`` with
+    ``p = K // 2``: row-major kernel index, entry (i, j) reads the pixel offset by (i - p) rows and (j - p) columns,
+    rows / columns outside the image replicate the border (see the module docstring). Identical, up to float
+    rounding, to `apply_pixel_kernels_unfold`, the F.unfold formulation used by BAGS.
+
+    Differentiable in ``image`` and ``weights`` (first order; the backward is not itself differentiable). Memory
+    beyond the inputs: the output, and in the backward the two gradients (``weights``' is as large as ``weights``).
+
+    Args:
+        image: [B, C, H, W] floating-point image, any strides.
+        weights: [B, K*K, H, W] per-pixel kernels for an odd K, same dtype and device as ``image``; used as given
+            (softmax them beforehand for normalised kernels).
+        backend: "cpp" (C++/OpenMP, CPU float32/float64 only), "torch" (a loop of K*K PyTorch ops, any device) or
+            "auto": "cpp" when it applies and the extension builds, else "torch".
+
+    Returns:
+        [B, C, H, W] blurred image, contiguous, same dtype and device as ``image``.
+
+    Raises:
+        ValueError: wrong ranks, K*K not the square of an odd K, batch / height / width mismatch, dtype or device
+            mismatch; the message names expected and actual shapes.
+    """
+    K = _check_inputs(image, weights)
+    if _resolve_backend(image, backend) == "cpp":
+        return _PixelKernelsCpp.apply(image, weights, K)
+    return _PixelKernelsTorch.apply(image, weights, K)
+
+
+def apply_pixel_kernels_unfold(
+    image: Tensor,  # [B, C, H, W]
+    weights: Tensor,  # [B, K*K, H, W]
+) -> Tensor:  # [B, C, H, W]
+    """Reference (BAGS-style): replicate-pad, ``F.unfold`` into [B, C, K*K, H, W] patches, weight and sum.
+
+    Same convention and checks as `apply_pixel_kernels`; autograd does the backward. Allocates
+    ``B * C * K*K * H * W`` elements for the patches (0.8 GB at 600x400 RGB, K=17) and as much for their product
+    with the weights; kept for tests and `gsmsdr-bench kernels` only.
+    """
+    K = _check_inputs(image, weights)
+    B, C, H, W = image.shape
+    p = K // 2
+    padded = F.pad(image, (p, p, p, p), mode="replicate")  # [B, C, H+2p, W+2p]
+    patches = F.unfold(padded, kernel_size=K).view(B, C, K * K, H, W)  # channel c*K*K + i*K + j
+    return (patches * weights.unsqueeze(1)).sum(2)
+
+
+class ApplyPixelKernels(nn.Module):
+    """Module twin of `apply_pixel_kernels`; holds only the backend choice.
+
+    Shape:
+        - image: [B, C, H, W]
+        - weights: [B, K*K, H, W]
+        - output: [B, C, H, W]
+    """
+
+    def __init__(self, backend: PixelKernelBackend = "auto") -> None:
+        super().__init__()
+        self.backend = backend
+
+    def forward(self, image: Tensor, weights: Tensor) -> Tensor:
+        return apply_pixel_kernels(image, weights, backend=self.backend)
+
+    def extra_repr(self) -> str:
+        return f"backend={self.backend!r}"

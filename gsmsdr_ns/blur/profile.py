@@ -1,0 +1,259 @@
+"""Per-image degradation profiles and the resolution-loss operator for known mixed-resolution factors.
+
+A :class:`DegradationProfile` says what happened to one training image (from the per-image entries of
+``degradation.json``, contract ``notes_tmp/degrade_spec.md``, or the dataparsers' records, see
+``gsmsdr_ns.data.degradation``) and therefore which model parts it needs:
+
+=====================  ==================  ===========  ========================================
+profile                needs_blur_field    needs_depth  resolution model
+=====================  ==================  ===========  ========================================
+sharp / noise only     no                  no           no
+motion                 yes                 yes          (factor > 1 if also mixres)
+defocus                yes                 yes          (factor > 1 if also mixres)
+mixres, factor f > 1   no                  no           yes: known down-up operator + residual
+mixres, factor unknown yes (learns it)     no           no
+=====================  ==================  ===========  ========================================
+
+Depth decisions: defocus blur is a function of depth (circle of confusion ~ |1/d - 1/d_focus|), so depth is
+needed. Camera motion blur depends on depth through parallax for the translational part of the shake (pixel
+displacement ~ 1/d; the rotational part is depth independent); the paper's Table 8 shows the RGB-D input matters
+most for motion (-1.97 dB without it), so motion also asks for depth. A resolution loss of known or unknown
+factor is the same for every depth, so it does not.
+
+:class:`ResolutionLossModel` re-creates the degrade tool's mixed-resolution operator exactly
+(``gsmsdr_ns.degrade.kernels.apply_mixres``: kornia antialiased bilinear downscale to round(H/f) x round(W/f),
+bilinear (or bicubic) upscale back, clamp to [0, 1]) and adds a small learned residual kernel, initialised to
+the identity, for any mismatch with how a real camera lost its resolution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal, Mapping, Optional, Sequence, Union
+
+import torch
+import torch.nn.functional as F
+from kornia.geometry.transform import resize
+from torch import Tensor, nn
+
+__all__ = ["DegradationProfile", "ProfileMode", "down_up", "effective_factor", "ResolutionLossModel"]
+
+ProfileMode = Literal["auto", "motion", "defocus", "mixres", "sharp"]
+_MODES = ("auto", "motion", "defocus", "mixres", "sharp")
+
+
+@dataclass(frozen=True)
+class DegradationProfile:
+    """What degraded one training image. Default: sharp."""
+
+    motion: bool = False
+    """Camera motion blur."""
+    defocus: bool = False
+    """Defocus blur."""
+    mixres_factor: Optional[int] = 1
+    """Known resolution-loss factor (1: full resolution, f > 1: shrunk by f and enlarged back); None: the image may
+    have lost resolution by an unknown factor (the blur field then learns it)."""
+    noise: bool = False
+    """Sensor noise (not modelled: the photometric loss averages it out)."""
+    mixres_upsample: str = "bilinear"
+    """Interpolation that enlarged a mixres image back to full size (``degradation.json``'s "upsample")."""
+
+    def __post_init__(self) -> None:
+        f = self.mixres_factor
+        if f is not None and (not isinstance(f, int) or isinstance(f, bool) or f < 1):
+            raise ValueError(f"mixres_factor must be None or an integer >= 1, got {f!r}")
+        if self.mixres_upsample not in ("bilinear", "bicubic"):
+            raise ValueError(f"mixres_upsample must be bilinear or bicubic, got {self.mixres_upsample!r}")
+
+    @property
+    def is_sharp(self) -> bool:
+        """No blur, no resolution loss and no noise."""
+        return not (self.motion or self.defocus or self.noise) and self.mixres_factor == 1
+
+    @property
+    def needs_resolution_model(self) -> bool:
+        """A known resolution loss (factor > 1): model it with :class:`ResolutionLossModel`."""
+        return self.mixres_factor is not None and self.mixres_factor > 1
+
+    @property
+    def needs_blur_field(self) -> bool:
+        """Motion or defocus blur, or a resolution loss of unknown factor: the per-pixel kernel field is needed."""
+        return self.motion or self.defocus or self.mixres_factor is None
+
+    @property
+    def needs_depth(self) -> bool:
+        """Depth is an input of the blur field for this image (defocus: required; motion: helps, see module doc)."""
+        return self.motion or self.defocus
+
+    # ------------------------------------------------------------------------------------------ constructors
+
+    @classmethod
+    def unknown(cls) -> "DegradationProfile":
+        """Profile of a training image nothing is known about: any blur, any resolution loss (blur field + depth)."""
+        return cls(motion=True, defocus=True, mixres_factor=None)
+
+    @staticmethod
+    def is_known(metadata: Optional[Mapping[str, Any]]) -> bool:
+        """Whether a per-image dict says what happened (``degraded`` is True/False, not None or missing)."""
+        return metadata is not None and metadata.get("degraded", None) is not None
+
+    @classmethod
+    def from_metadata(cls, metadata: Optional[Mapping[str, Any]]) -> "DegradationProfile":
+        """Profile from one image's dict: a ``degradation.json`` entry (``{"split", "degraded", "effects"}``) or a
+        dataparser record (same keys plus ``"mixres_factor"``).
+
+        Test views and ``degraded: false`` are sharp. Unknown metadata (None, ``degraded`` None or missing, or
+        degraded with no effects listed) gives :meth:`unknown`.
+        """
+        if metadata is None:
+            return cls.unknown()
+        if metadata.get("split") == "test" or metadata.get("degraded", None) is False:
+            return cls()
+        effects = metadata.get("effects") or {}
+        if not isinstance(effects, Mapping):
+            raise ValueError(f"'effects' must be a dict, got {type(effects).__name__}")
+        unknown_effects = set(effects) - {"motion", "defocus", "mixres", "noise"}
+        if unknown_effects:
+            raise ValueError(f"unknown degradation effect(s) {sorted(unknown_effects)}")
+        if metadata.get("degraded", None) is None or not effects:
+            return cls.unknown()
+        mixres = effects.get("mixres")
+        factor = metadata.get("mixres_factor")
+        if factor is None:
+            factor = int(mixres.get("factor", 1)) if isinstance(mixres, Mapping) else 1
+        upsample = mixres.get("upsample", "bilinear") if isinstance(mixres, Mapping) else "bilinear"
+        return cls(
+            motion="motion" in effects,
+            defocus="defocus" in effects,
+            mixres_factor=int(factor),
+            noise="noise" in effects,
+            mixres_upsample=upsample,
+        )
+
+    @classmethod
+    def from_mode(cls, mode: ProfileMode, metadata: Optional[Mapping[str, Any]] = None) -> "DegradationProfile":
+        """Profile of one image under the model's ``degradation_mode``.
+
+        * ``auto``: what the metadata says (:meth:`from_metadata`; unknown images get :meth:`unknown`);
+        * ``motion`` / ``defocus``: that blur only (a known mixres factor and noise in the metadata are kept);
+        * ``mixres``: resolution loss only, factor from the metadata (None = unknown when it has none);
+        * ``sharp``: no degradation (plain splatfacto).
+
+        Test views (``split == "test"``) and images the metadata says are undegraded are sharp in every mode.
+        """
+        if mode not in _MODES:
+            raise ValueError(f"degradation mode must be one of {_MODES}, got {mode!r}")
+        if mode == "sharp":
+            return cls()
+        known = cls.is_known(metadata)
+        meta = cls.from_metadata(metadata) if known else None
+        if metadata is not None and (metadata.get("split") == "test" or metadata.get("degraded", None) is False):
+            return cls()
+        if mode == "auto":
+            return meta if meta is not None else cls.unknown()
+        factor = meta.mixres_factor if meta is not None else 1
+        noise = meta.noise if meta is not None else False
+        upsample = meta.mixres_upsample if meta is not None else "bilinear"
+        if mode == "mixres":
+            factor = meta.mixres_factor if meta is not None else None
+            return cls(mixres_factor=factor, noise=noise, mixres_upsample=upsample)
+        return cls(motion=mode == "motion", defocus=mode == "defocus", mixres_factor=factor, noise=noise,
+                   mixres_upsample=upsample)  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------------------ resolution loss
+
+
+def effective_factor(factor: float, downscale: float = 1.0) -> float:
+    """Resolution-loss factor seen by a render at 1/``downscale`` of full resolution: ``factor / downscale``.
+
+    An image shrunk by 4 and rendered (with its ground truth resized) at 1/2 resolution has lost a factor 2
+    relative to that render; at 1/4 or coarser nothing is left to model (<= 1: identity). Approximate for
+    non-power-of-two ratios (the ground truth is resized from the degraded full image, not re-degraded).
+    """
+    if factor < 1 or downscale <= 0:
+        raise ValueError(f"factor must be >= 1 and downscale > 0, got {factor}, {downscale}")
+    return factor / downscale
+
+
+def down_up(image: Tensor, factor: float, upsample: str = "bilinear", clamp: bool = True) -> Tensor:
+    """The degrade tool's mixed-resolution operator, differentiable.
+
+    Shrink by ``factor`` (kornia ``resize``, bilinear with antialias, to ``max(1, round(H / f)) x max(1, round(W /
+    f))``), enlarge back to H x W with ``upsample`` (align_corners False) and clamp to [0, 1] as the tool does
+    (a no-op for bilinear on values in [0, 1]). ``factor <= 1`` returns ``image`` unchanged.
+    Identical to ``gsmsdr_ns.degrade.kernels.apply_mixres`` for integer factors.
+
+    Args:
+        image: [B, C, H, W]
+    Returns:
+        [B, C, H, W]
+    """
+    if image.dim() != 4:
+        raise ValueError(f"image must be [B, C, H, W], got {list(image.shape)}")
+    if factor <= 1:
+        return image
+    H, W = image.shape[-2:]
+    small = (max(1, round(H / factor)), max(1, round(W / factor)))
+    low = resize(image, small, interpolation="bilinear", antialias=True)
+    up = resize(low, (H, W), interpolation=upsample, align_corners=False)
+    return up.clamp(0.0, 1.0) if clamp else up
+
+
+class ResolutionLossModel(nn.Module):
+    """Known down-up operator plus a small learned residual kernel (identity at initialisation).
+
+    ``out = R_v * down_up(render, f_b)`` where ``*`` is a ``kernel_size`` x ``kernel_size`` convolution
+    (replicate border) with ``R_v = delta + (W_v - mean(W_v))``: ``W_v`` is a learnable per-view table (or one
+    global kernel with ``num_views=None``) initialised to zeros, so ``R_v`` always sums to 1 and starts as the exact
+    identity. Images with an effective factor <= 1 pass through the residual only.
+
+    Args:
+        num_views: training views (one residual kernel each); None: one global kernel.
+        kernel_size: odd residual kernel size (3 or 5).
+        upsample: the degrade tool's upsampling ("bilinear" default, or "bicubic").
+    ``forward(render [B,C,H,W], factors [B] (float; 1 = untouched), view_ids [B] or None) -> [B,C,H,W]``.
+    """
+
+    def __init__(self, num_views: Optional[int] = None, kernel_size: int = 3, upsample: str = "bilinear") -> None:
+        super().__init__()
+        if kernel_size < 1 or kernel_size % 2 == 0:
+            raise ValueError(f"kernel_size must be odd and >= 1, got {kernel_size}")
+        if upsample not in ("bilinear", "bicubic"):
+            raise ValueError(f"upsample must be bilinear or bicubic, got {upsample!r}")
+        self.kernel_size, self.upsample, self.num_views = kernel_size, upsample, num_views
+        self.residual = nn.Parameter(torch.zeros(num_views or 1, kernel_size * kernel_size))
+
+    def kernels(self, view_ids: Optional[Tensor], batch: int) -> Tensor:
+        """Residual kernels ``delta + W - mean(W)``: [B, k*k], each summing to 1."""
+        w = self.residual if self.num_views is None else self.residual[view_ids.long()]
+        w = w - w.mean(dim=1, keepdim=True)
+        delta = torch.zeros_like(w)
+        delta[:, (self.kernel_size * self.kernel_size) // 2] = 1.0
+        return (delta + w).expand(batch, -1)
+
+    def forward(
+        self,
+        render: Tensor,  # [B, C, H, W]
+        factors: Union[Tensor, Sequence[float]],  # [B]
+        view_ids: Optional[Tensor] = None,  # [B]
+    ) -> Tensor:
+        if render.dim() != 4:
+            raise ValueError(f"render must be [B, C, H, W], got {list(render.shape)}")
+        B, C, H, W = render.shape
+        factors = [float(f) for f in (factors.tolist() if isinstance(factors, Tensor) else factors)]
+        if len(factors) != B:
+            raise ValueError(f"need one factor per image ({B}), got {len(factors)}")
+        if self.num_views is not None and (view_ids is None or view_ids.shape != (B,)):
+            raise ValueError(f"per-view residuals need view_ids of shape [{B}]")
+        rows = []
+        for f in sorted(set(factors)):  # one resize per distinct factor
+            idx = [i for i, g in enumerate(factors) if g == f]
+            rows.append((idx, down_up(render[idx], f, self.upsample)))
+        order = [i for idx, _ in rows for i in idx]
+        low = torch.cat([x for _, x in rows], dim=0)[torch.argsort(torch.tensor(order, device=render.device))]
+        k = self.kernel_size
+        kern = self.kernels(view_ids, B).to(render.dtype)  # [B, k*k]
+        padded = F.pad(low.reshape(1, B * C, H, W), [k // 2] * 4, mode="replicate")
+        weight = kern.repeat_interleave(C, dim=0).reshape(B * C, 1, k, k)
+        return F.conv2d(padded, weight, groups=B * C).reshape(B, C, H, W)

@@ -1,0 +1,420 @@
+"""Tests of gsmsdr_ns.blur (MAAN, HPKO, BlurField, DegradationProfile, ResolutionLossModel) on CPU, no nerfstudio.
+
+Images are tiny (<= 32 x 48) except in the size/timing report (150 x 100), which prints and asserts nothing about
+speed. Run ``pytest tests/test_blur_field.py -s -k report`` to see parameter counts and timings.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
+from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo
+from gsmsdr_ns.blur.maan import GAKA, MCA, SAFM, BAGSFeatures, RGBDFeatures, normalize_depth, positional_encoding_2d
+from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, down_up, effective_factor
+
+NUM_VIEWS = 5
+
+
+def reference_apply(image: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Per-pixel kernels via F.unfold on a replicate-padded image (the convention apply_pixel_kernels follows)."""
+    B, C, H, W = image.shape
+    K = int(round(weights.shape[1] ** 0.5))
+    patches = F.unfold(F.pad(image, [K // 2] * 4, mode="replicate"), K).view(B, C, K * K, H, W)
+    return (patches * weights[:, None]).sum(2)
+
+
+def inputs(B: int = 2, H: int = 16, W: int = 24, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    render = torch.rand(B, 3, H, W, generator=g).requires_grad_()
+    depth = (1.0 + 4.0 * torch.rand(B, 1, H, W, generator=g)).requires_grad_()
+    view_ids = torch.arange(B) % NUM_VIEWS
+    return render, depth, view_ids
+
+
+def field(**kw) -> BlurField:
+    torch.manual_seed(0)
+    return BlurField(BlurFieldConfig(**kw), num_train_views=NUM_VIEWS)
+
+
+def num_params(module: torch.nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())
+
+
+def has(module: torch.nn.Module, cls: type) -> bool:
+    return any(isinstance(m, cls) for m in module.modules())
+
+
+# ------------------------------------------------------------------------------------------------ import hygiene
+
+
+def test_blur_package_imports_without_nerfstudio():
+    code = (
+        "import sys; import gsmsdr_ns.blur.field, gsmsdr_ns.blur.profile, gsmsdr_ns.blur.hpko, gsmsdr_ns.blur.maan; "
+        "bad = [m for m in sys.modules if m.split('.')[0] in ('nerfstudio', 'gsplat', 'tyro')]; "
+        "assert not bad, bad"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# ------------------------------------------------------------------------------------------------ shapes, ranges
+
+
+@pytest.mark.parametrize("scale,K", [(3, 5), (2, 9), (1, 17)])
+def test_shapes_kernels_and_masks_at_each_scale(scale, K):
+    f = field()
+    d = 2 ** (scale - 1)
+    render, depth, view_ids = inputs(H=32 // d, W=48 // d)
+    weights, mask = f(render, depth, view_ids, scale)
+    assert f.kernel_size(scale) == K
+    assert weights.shape == (2, K * K, 32 // d, 48 // d)
+    assert mask.shape == (2, 1, 32 // d, 48 // d)
+    torch.testing.assert_close(weights.sum(1), torch.ones(2, 32 // d, 48 // d))
+    assert (weights > 0).all()
+    assert ((mask > 0) & (mask < 1)).all()
+    assert f.degrade(render, weights, mask).shape == render.shape
+
+
+def test_invalid_inputs_raise():
+    f = field()
+    render, depth, view_ids = inputs()
+    with pytest.raises(ValueError, match="scale"):
+        f(render, depth, view_ids, 4)
+    with pytest.raises(ValueError, match="depth"):
+        f(render, None, view_ids, 3)
+    with pytest.raises(ValueError, match="view_ids"):
+        f(render, depth, torch.tensor([0, NUM_VIEWS]), 3)
+    with pytest.raises(ValueError, match="render"):
+        f(render[:, :2], depth, view_ids, 3)
+    with pytest.raises(ValueError):
+        BlurFieldConfig(kernel_sizes=(5, 8, 17))
+    with pytest.raises(ValueError):
+        BlurFieldConfig(mode="bogus")  # type: ignore[arg-type]
+
+
+# ------------------------------------------------------------------------------------------------ degrade()
+
+
+def test_zero_mask_and_identity_kernel_reproduce_the_render():
+    render, _, _ = inputs()
+    B, _, H, W = render.shape
+    K = 9
+    random_w = torch.softmax(torch.randn(B, K * K, H, W), dim=1)
+    identity = torch.zeros(B, K * K, H, W)
+    identity[:, K * K // 2] = 1.0
+    zeros, ones = torch.zeros(B, 1, H, W), torch.ones(B, 1, H, W)
+    assert torch.equal(BlurField.degrade(render, random_w, zeros), render)  # zero mask: exactly the render
+    assert torch.equal(BlurField.degrade(render, identity, ones), render)  # identity kernel: exactly the render
+    assert torch.equal(BlurField.degrade(render, identity, zeros), render)
+    torch.testing.assert_close(BlurField.degrade(render, identity, torch.rand(B, 1, H, W)), render)
+
+
+def test_degrade_matches_unfold_reference():
+    render, _, _ = inputs(H=12, W=10)
+    B, _, H, W = render.shape
+    for K in (5, 9, 17):  # 17 > image height: replicate border everywhere
+        w = torch.softmax(torch.randn(B, K * K, H, W), dim=1)
+        m = torch.rand(B, 1, H, W)
+        expected = m * reference_apply(render, w) + (1 - m) * render
+        torch.testing.assert_close(BlurField.degrade(render, w, m), expected)
+
+
+# ------------------------------------------------------------------------------------------------ gradients
+
+
+@pytest.mark.parametrize("mode", ["full", "msd_only", "re_only"])
+def test_gradients_reach_every_active_parameter_and_the_render(mode):
+    f = field(mode=mode)
+    for scale in f.scales:
+        d = 2 ** (scale - 1)
+        render, depth, view_ids = inputs(H=32 // d, W=48 // d, seed=scale)
+        f.zero_grad(set_to_none=True)
+        weights, mask = f(render, depth, view_ids, scale)
+        out = f.degrade(render, weights, mask)
+        target = torch.rand_like(out)
+        loss = (out - target).abs().mean() + f.mask_loss(mask)
+        loss.backward()
+        active = {id(p) for p in f.parameters_for_scale(scale)}
+        for name, p in f.named_parameters():
+            if id(p) in active:
+                assert p.grad is not None and p.grad.abs().sum() > 0, f"{mode} s={scale}: no gradient for {name}"
+            else:
+                assert p.grad is None, f"{mode} s={scale}: {name} is not used at this scale but got a gradient"
+        assert render.grad is not None and render.grad.abs().sum() > 0
+        assert depth.grad is None  # inputs of the feature network are detached (BAGS)
+
+
+# ------------------------------------------------------------------------------------------------ ablations, modes
+
+
+@pytest.mark.parametrize(
+    "switch,module_cls", [("gaka", GAKA), ("safm", SAFM), ("mca", MCA), ("rgbd", None), ("hpko", None)]
+)
+def test_each_ablation_switch_removes_its_parameters_and_still_runs(switch, module_cls):
+    full, ablated = field(), field(**{switch: False})
+    assert num_params(ablated) < num_params(full)
+    if module_cls is not None:
+        assert has(full, module_cls) and not has(ablated, module_cls)
+    if switch == "rgbd":
+        n = full.config.dims.feature_dim
+        assert num_params(full) - num_params(ablated) == 9 * n  # one input channel less in the 3x3 SFE
+        assert not ablated.uses_depth
+    if switch == "hpko":
+        assert ablated.scales == (1,) and ablated.kernel_size(1) == 17
+    scale = ablated.scales[0]
+    d = 2 ** (scale - 1)
+    render, _, view_ids = inputs(H=32 // d, W=48 // d)
+    depth = None if switch == "rgbd" else torch.rand(2, 1, 32 // d, 48 // d)
+    weights, mask = ablated(render, depth, view_ids, scale)
+    ablated.degrade(render, weights, mask).sum().backward()
+    assert render.grad is not None
+
+
+def test_rgbd_off_never_touches_depth():
+    f = field(rgbd=False)
+    render, _, view_ids = inputs()
+    poisoned = torch.full((2, 1, 16, 24), float("nan"))
+    weights, mask = f(render, poisoned, view_ids, 3)  # depth is ignored, not normalised
+    assert torch.isfinite(weights).all() and torch.isfinite(mask).all()
+    g = BlurField(BlurFieldConfig(), NUM_VIEWS, use_depth=False)  # profile says depth does not matter
+    assert not g.uses_depth and num_params(g) == num_params(f)
+
+
+def test_all_switches_off_still_runs():
+    f = field(gaka=False, safm=False, mca=False, rgbd=False, hpko=False)
+    render, _, view_ids = inputs()
+    weights, mask = f(render, None, view_ids, 1)
+    assert weights.shape == (2, 17 * 17, 16, 24)
+
+
+def test_msd_only_and_re_only_modes():
+    msd, re, full = field(mode="msd_only"), field(mode="re_only"), field()
+    assert has(msd, BAGSFeatures) and not has(msd, RGBDFeatures)
+    assert not (has(msd, GAKA) or has(msd, SAFM) or has(msd, MCA))
+    assert msd.scales == (3, 2, 1)
+    assert has(re, GAKA) and has(re, SAFM) and has(re, MCA) and not has(re, BAGSFeatures)
+    assert re.scales == (1,)
+    assert num_params(re) == num_params(field(hpko=False))  # RE-only is Table 6's "-HPKO"
+    assert num_params(re) < num_params(full)
+    assert re.config.make_scheduler().scale_for_step(0) == ScaleInfo(1, 17, 1)
+    assert msd.config.make_scheduler().scale_for_step(0) == ScaleInfo(3, 5, 4)
+
+
+def test_lite_size_is_smaller_and_explicit_widths_win():
+    lite = field(size="lite")
+    assert num_params(lite) < num_params(field()) / 2
+    assert BlurFieldConfig(size="lite", feature_dim=24).dims.feature_dim == 24
+    assert BlurFieldConfig().dims == (32, 32, 16, 64, 2)  # BAGS' 80-channel contextual features
+    assert field().mcf.out_channels == 80
+
+
+def test_shared_dict_hooks():
+    f = field(mask_reg_weight=0.001)
+    groups = f.get_param_groups({"means": []})
+    assert set(groups) == {"means", "blur_field"} and len(groups["blur_field"]) == len(list(f.parameters()))
+    mask = torch.full((1, 1, 4, 4), 0.5)
+    losses = f.get_loss_dict({}, mask)
+    torch.testing.assert_close(losses["blur_mask_reg"], torch.tensor(0.0005))
+    assert f.get_loss_dict({}, None) == {}
+
+
+# ------------------------------------------------------------------------------------------------ pure helpers
+
+
+def test_positional_encoding_and_depth_normalisation():
+    pe = positional_encoding_2d(4, 6, 16)
+    assert pe.shape == (1, 16, 4, 6)
+    # resolution independent: the centre of coarse pixel (i, j) is the centre of fine pixel (3i + 1, 3j + 1)
+    torch.testing.assert_close(positional_encoding_2d(12, 18, 16)[..., 1::3, 1::3], pe)
+    with pytest.raises(ValueError):
+        positional_encoding_2d(4, 6, 6)
+    d = torch.tensor([[[[2.0, 4.0], [float("inf"), 3.0]]]])
+    n = normalize_depth(d)
+    assert n.min() == 0 and n.max() <= 1 and torch.isfinite(n).all()
+
+
+# ------------------------------------------------------------------------------------------------ scheduler
+
+
+def splatfacto_downscale(step: int, num_downscales: int = 2, resolution_schedule: int = 3000) -> int:
+    """``SplatfactoModel._get_downscale_factor`` in training mode (nerfstudio 1.1.5)."""
+    return 2 ** max(num_downscales - step // resolution_schedule, 0)
+
+
+def test_scheduler_follows_the_resolution_schedule():
+    sched = HPKOScheduler()
+    expected = {0: (3, 5, 4), 2999: (3, 5, 4), 3000: (2, 9, 2), 5999: (2, 9, 2), 6000: (1, 17, 1), 60000: (1, 17, 1)}
+    for step, info in expected.items():
+        assert sched.scale_for_step(step) == ScaleInfo(*info)
+    for nd, rs in [(2, 3000), (1, 500), (0, 3000), (3, 1000)]:
+        s = HPKOScheduler(num_downscales=nd, resolution_schedule=rs)
+        for step in range(0, 5 * rs, rs // 4):
+            d = splatfacto_downscale(step, nd, rs)
+            info = s.scale_for_step(step)
+            assert info == s.scale_for_downscale(d)
+            assert info.downsample == min(d, 4)  # coarser renders than 1/4 keep the coarsest kernel
+    assert sched.scale_for_downscale(1) == ScaleInfo(1, 17, 1)
+    assert sched.scale_for_downscale(2.0) == ScaleInfo(2, 9, 2)
+    with pytest.raises(ValueError):
+        sched.scale_for_downscale(3)
+
+
+def test_scheduler_switch_steps_warmup_and_state():
+    sched = HPKOScheduler(switch_steps=(1000, 2500), warmup=250)
+    assert [sched.scale_for_step(s).scale for s in (0, 999, 1000, 2499, 2500)] == [3, 3, 2, 2, 1]
+    with pytest.raises(ValueError):
+        HPKOScheduler(switch_steps=(3000,))
+    state = sched.initialize_state()
+    assert sched.update(state, 0) is None and state["scale"] is None  # warm-up: blur field off
+    assert sched.update(state, 249) is None
+    assert sched.update(state, 250) == ScaleInfo(3, 5, 4) and not state["switched"]
+    assert sched.update(state, 1000).scale == 2 and state["switched"]
+    assert sched.update(state, 1001).scale == 2 and not state["switched"]
+    # the downscale the model renders at wins over the step-based guess
+    assert sched.update(state, 1002, downscale=1) == ScaleInfo(1, 17, 1) and state["switched"]
+    assert state["first_step"] == {3: 250, 2: 1000, 1: 1002}
+    off = HPKOScheduler(enabled=False)
+    assert off.scales == (1,)
+    assert {off.scale_for_step(s) for s in (0, 3000, 9000)} == {ScaleInfo(1, 17, 1)}
+    assert off.scale_for_downscale(4) == ScaleInfo(1, 17, 1)
+
+
+def test_config_builds_a_scheduler_tied_to_the_model_schedule():
+    sched = BlurFieldConfig(warmup=100).make_scheduler(num_downscales=1, resolution_schedule=500)
+    assert sched.warmup == 100 and sched.scale_for_step(0) == ScaleInfo(2, 9, 2)
+    assert sched.scale_for_step(500) == ScaleInfo(1, 17, 1)
+
+
+# ------------------------------------------------------------------------------------------------ profiles
+
+
+def entry(effects, split="train", degraded=True):
+    return {"split": split, "degraded": degraded, "effects": effects}
+
+
+def test_profile_from_metadata_for_each_effect():
+    motion = DegradationProfile.from_metadata(entry({"motion": {"model": "trajectory"}}))
+    assert motion == DegradationProfile(motion=True)
+    assert motion.needs_blur_field and motion.needs_depth and not motion.is_sharp
+    defocus = DegradationProfile.from_metadata(entry({"defocus": {"model": "disk", "radius_px": 3}}))
+    assert defocus == DegradationProfile(defocus=True) and defocus.needs_depth and defocus.needs_blur_field
+    mix = DegradationProfile.from_metadata(entry({"mixres": {"factor": 4, "upsample": "bicubic"}}))
+    assert mix.mixres_factor == 4 and mix.mixres_upsample == "bicubic"
+    assert mix.needs_resolution_model and not mix.needs_blur_field and not mix.needs_depth
+    noise = DegradationProfile.from_metadata(entry({"noise": {"sigma": 0.01, "model": "gaussian"}}))
+    assert noise.noise and not noise.is_sharp and not noise.needs_blur_field
+    both = DegradationProfile.from_metadata(entry({"motion": {}, "noise": {"sigma": 0.01}, "mixres": {"factor": 2}}))
+    assert both == DegradationProfile(motion=True, noise=True, mixres_factor=2)
+    # a dataparser record carries mixres_factor explicitly
+    record = {"name": "a.png", "split": "train", "degraded": True, "effects": {"mixres": {"factor": 3}}}
+    record["mixres_factor"] = 3
+    assert DegradationProfile.from_metadata(record).mixres_factor == 3
+    full_res = DegradationProfile.from_metadata(entry({"mixres": {"factor": 1}}))
+    assert full_res.is_sharp and not full_res.needs_resolution_model
+    with pytest.raises(ValueError, match="unknown degradation effect"):
+        DegradationProfile.from_metadata(entry({"rain": {}}))
+
+
+def test_sharp_and_unknown_profiles():
+    for meta in (entry({}, split="test", degraded=False), entry({}, degraded=False), entry({"motion": {}}, "test")):
+        p = DegradationProfile.from_metadata(meta)
+        assert p.is_sharp and not p.needs_blur_field and not p.needs_depth and not p.needs_resolution_model
+    unknown = {"name": "x.png", "split": "train", "degraded": None, "effects": {}, "mixres_factor": None}
+    for meta in (None, unknown, entry({})):
+        p = DegradationProfile.from_metadata(meta)
+        assert p == DegradationProfile.unknown() and p.needs_blur_field and p.mixres_factor is None
+
+
+def test_profile_from_mode():
+    unknown = {"split": "train", "degraded": None, "effects": {}}
+    known = entry({"motion": {}, "mixres": {"factor": 2}})
+    assert DegradationProfile.from_mode("auto", known) == DegradationProfile.from_metadata(known)
+    assert DegradationProfile.from_mode("auto", unknown) == DegradationProfile.unknown()
+    assert DegradationProfile.from_mode("motion", unknown) == DegradationProfile(motion=True)
+    assert DegradationProfile.from_mode("defocus", unknown) == DegradationProfile(defocus=True)
+    assert DegradationProfile.from_mode("defocus", known) == DegradationProfile(defocus=True, mixres_factor=2)
+    assert DegradationProfile.from_mode("mixres", known) == DegradationProfile(mixres_factor=2)
+    mix_unknown = DegradationProfile.from_mode("mixres", unknown)
+    assert mix_unknown.mixres_factor is None and mix_unknown.needs_blur_field and not mix_unknown.needs_depth
+    assert DegradationProfile.from_mode("sharp", known).is_sharp
+    assert DegradationProfile.from_mode("motion", entry({}, split="test", degraded=False)).is_sharp
+    with pytest.raises(ValueError):
+        DegradationProfile.from_mode("rain", known)  # type: ignore[arg-type]
+    with pytest.raises(ValueError):
+        DegradationProfile(mixres_factor=0)
+
+
+# ------------------------------------------------------------------------------------------------ resolution loss
+
+
+def test_resolution_loss_model_identity_residual_equals_down_up():
+    g = torch.Generator().manual_seed(1)
+    render = torch.rand(4, 3, 30, 41, generator=g).requires_grad_()
+    factors = [4, 1, 2, 3]
+    for num_views in (None, NUM_VIEWS):
+        model = ResolutionLossModel(num_views=num_views, kernel_size=3)
+        out = model(render, factors, torch.tensor([0, 1, 2, 4]))
+        for i, f in enumerate(factors):
+            torch.testing.assert_close(out[i : i + 1], down_up(render[i : i + 1], f), rtol=0, atol=1e-6)
+        torch.testing.assert_close(out[1:2], render[1:2], rtol=0, atol=1e-6)  # factor 1: untouched
+    assert down_up(render, 1) is render
+    # learnable: gradients reach the residual and the render; kernels keep summing to 1
+    model = ResolutionLossModel(num_views=NUM_VIEWS, kernel_size=5)
+    model(render, torch.tensor(factors), torch.tensor([0, 1, 2, 4])).square().mean().backward()
+    assert model.residual.grad.abs().sum() > 0 and render.grad.abs().sum() > 0
+    with torch.no_grad():
+        model.residual.normal_()
+    torch.testing.assert_close(model.kernels(torch.arange(NUM_VIEWS), NUM_VIEWS).sum(1), torch.ones(NUM_VIEWS))
+    assert effective_factor(4, 2) == 2 and effective_factor(4, 4) == 1
+
+
+def test_down_up_matches_the_degrade_tool():
+    kernels = pytest.importorskip("gsmsdr_ns.degrade.kernels")
+    render = torch.rand(2, 3, 37, 50, generator=torch.Generator().manual_seed(2))
+    for f in (1, 2, 3, 4):
+        for up in ("bilinear", "bicubic"):
+            assert torch.equal(down_up(render, f, up), kernels.apply_mixres(render, f, up))
+
+
+def test_float64_field():
+    f = field(size="lite").double()
+    render, depth, view_ids = inputs(H=8, W=12)
+    weights, mask = f(render.double(), depth.double(), view_ids, 3)
+    assert weights.dtype == mask.dtype == torch.float64
+    torch.testing.assert_close(weights.sum(1), torch.ones(2, 8, 12, dtype=torch.float64))
+
+
+# ------------------------------------------------------------------------------------------------ report
+
+
+def test_report_parameter_counts_and_timing_150x100():
+    """Prints parameter counts and a forward+backward time at 150 x 100 (full resolution, K = 17).
+
+    Timed single-threaded (stable on a shared 2-core CPU, where two threads often run slower), one warm-up round,
+    then the configs in turns (2 rounds), best time kept. Nothing is asserted about speed.
+    """
+    render, depth, view_ids = inputs(B=1, H=100, W=150)
+    configs = {"full": {}, "lite": {"size": "lite"}, "msd_only": {"mode": "msd_only"}, "re_only": {"mode": "re_only"}}
+    fields = {name: field(**kw) for name, kw in configs.items()}
+    best = {name: float("inf") for name in fields}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for round_ in range(3):
+            for name, f in fields.items():
+                t0 = time.perf_counter()
+                w, m = f(render, depth, view_ids, 1)
+                f.degrade(render, w, m).mean().backward()
+                if round_ > 0:
+                    best[name] = min(best[name], time.perf_counter() - t0)
+    finally:
+        torch.set_num_threads(threads)
+    rows = [f"{n:9s} params {num_params(f):7d}  fwd+bwd 150x100 K=17, 1 thread: {best[n] * 1e3:6.0f} ms" for n, f in
+            fields.items()]  # fmt: skip
+    print("\n" + "\n".join(rows))
