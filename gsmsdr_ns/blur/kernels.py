@@ -24,7 +24,6 @@ both against the unfold version.
 from __future__ import annotations
 
 import math
-import warnings
 from typing import Literal, Optional, Tuple
 
 import torch
@@ -34,7 +33,6 @@ from torch.autograd.function import once_differentiable
 
 PixelKernelBackend = Literal["auto", "cpp", "torch"]
 _CPP_DTYPES = (torch.float32, torch.float64)
-_fallback_warned = False
 
 
 def pixel_kernel_size(num_channels: int) -> int:
@@ -80,7 +78,6 @@ def _check_inputs(image: Tensor, weights: Tensor) -> int:
 
 def _resolve_backend(image: Tensor, backend: PixelKernelBackend) -> str:
     """"cpp" for CPU float32/float64 tensors when the extension builds, else "torch" (one warning says why)."""
-    global _fallback_warned
     if backend == "torch":
         return "torch"
     if backend not in ("auto", "cpp"):
@@ -92,21 +89,14 @@ def _resolve_backend(image: Tensor, backend: PixelKernelBackend) -> str:
                 f"backend='cpp' needs CPU float32/float64 tensors, got {image.dtype} on {image.device}"
             )
         return "torch"
-    from gsmsdr_ns.blur.kernels_cpp import pixel_kernels_cpp_available, pixel_kernels_cpp_error
+    from gsmsdr_ns.blur.kernels_cpp import EXTENSION
 
-    if pixel_kernels_cpp_available():
-        return "cpp"
-    reason = pixel_kernels_cpp_error()
-    if backend == "cpp":
-        raise RuntimeError(f"the C++ pixel-kernel op is unavailable: {reason}")
-    if not _fallback_warned:
-        warnings.warn(
-            f"gsmsdr: C++ pixel-kernel op unavailable ({reason}); using the PyTorch loop (slower on busy CPUs).",
-            RuntimeWarning,
-            stacklevel=3,
-        )
-        _fallback_warned = True
-    return "torch"
+    return EXTENSION.choose_backend(
+        backend,
+        unavailable="C++ pixel-kernel op",
+        fallback="the PyTorch loop (slower on busy CPUs)",
+        stacklevel=3,
+    )
 
 
 def _replicate_pad_adjoint(grad_padded: Tensor, p: int) -> Tensor:

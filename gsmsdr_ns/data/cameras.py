@@ -274,12 +274,27 @@ def read_poses_bounds(path: Path, names: Sequence[str]) -> SceneCameras:
     )
 
 
-def poses_bounds_array(cameras: SceneCameras, bounds: np.ndarray) -> np.ndarray:
-    """The N x 17 LLFF array for ``cameras`` (rows in their order; focal = fx) with [N, 2] near / far ``bounds``."""
-    llff = opencv_to_llff(cameras.c2w)
-    hwf = np.stack([cameras.sizes[:, 1], cameras.sizes[:, 0], cameras.intrinsics[:, 0]], axis=1).astype(np.float64)
+def llff_poses_bounds_rows(c2w: np.ndarray, sizes: np.ndarray, focal: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """The N x 17 LLFF ``poses_bounds`` array: per camera a flattened 3x5 ``[down, right, back | t | hwf]``, then
+    near, far (the inverse of `read_poses_bounds`).
+
+    As in LLFF's imgs2poses: columns (x, y, z) of the OpenCV camera-to-world become (y, x, -z) (`opencv_to_llff`)
+    and hwf = (height, width, focal).
+
+    Args:
+        c2w: [N, 4, 4] (or [N, 3, 4]) OpenCV camera-to-world. sizes: [N, 2] (width, height) in pixels.
+        focal: [N] focal length in pixels (fx). bounds: [N, 2] near / far depths.
+    """
+    llff = opencv_to_llff(c2w)
+    sizes = np.asarray(sizes).reshape(-1, 2)
+    hwf = np.stack([sizes[:, 1], sizes[:, 0], np.asarray(focal).reshape(-1)], axis=1).astype(np.float64)
     poses = np.concatenate([llff, hwf[:, :, None]], axis=2)
     return np.concatenate([poses.reshape(-1, 15), np.asarray(bounds, dtype=np.float64).reshape(-1, 2)], axis=1)
+
+
+def poses_bounds_array(cameras: SceneCameras, bounds: np.ndarray) -> np.ndarray:
+    """The N x 17 LLFF array for ``cameras`` (rows in their order; focal = fx) with [N, 2] near / far ``bounds``."""
+    return llff_poses_bounds_rows(cameras.c2w, cameras.sizes, cameras.intrinsics[:, 0], bounds)
 
 
 def depth_bounds(cameras: SceneCameras, xyz: np.ndarray, default: Tuple[float, float] = (0.1, 100.0)) -> np.ndarray:

@@ -10,7 +10,6 @@ Precedence: built-in defaults < --preset YAML < explicit flags (--effect replace
 from __future__ import annotations
 
 import dataclasses
-import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -21,6 +20,7 @@ import tyro
 from rich.console import Console
 from typing_extensions import Annotated
 
+from .._cli import preset_from_argv, run_entrypoint
 from .config import DegradeConfig, load_preset
 from .pipeline import degrade_scene
 
@@ -56,20 +56,10 @@ class DegradeCLI:
         return out
 
 
-def _preset_from_argv(argv: Sequence[str]) -> Path | None:
-    """Find --preset before tyro parses, so the preset can become the defaults that flags override."""
-    for i, arg in enumerate(argv):
-        if arg == "--preset" and i + 1 < len(argv):
-            return Path(argv[i + 1])
-        if arg.startswith("--preset="):
-            return Path(arg.split("=", 1)[1])
-    return None
-
-
 def parse(argv: Sequence[str] | None = None) -> DegradeCLI:
     """Parse CLI args (sys.argv[1:] by default) into a DegradeCLI."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    preset = _preset_from_argv(argv)
+    preset = preset_from_argv(argv)
     base = load_preset(preset) if preset is not None else DegradeConfig()
     # --effect appends to its default: start from an empty list and fall back to the preset's afterwards.
     default = DegradeCLI(
@@ -81,19 +71,9 @@ def parse(argv: Sequence[str] | None = None) -> DegradeCLI:
     return cli
 
 
-def _exit_on_sigterm(signum, _frame) -> None:
-    # SystemExit unwinds through degrade_scene's cleanup, so a killed run leaves no temp directory.
-    raise SystemExit(128 + signum)
-
-
 def entrypoint() -> None:
     """Console-script entry point."""
-    signal.signal(signal.SIGTERM, _exit_on_sigterm)
-    try:
-        parse().main()
-    except (FileExistsError, FileNotFoundError, ValueError) as e:
-        CONSOLE.print(f"[bold red]error:[/bold red] {e}")
-        sys.exit(1)
+    run_entrypoint(parse, CONSOLE)
 
 
 if __name__ == "__main__":

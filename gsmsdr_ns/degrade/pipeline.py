@@ -29,6 +29,7 @@ import torch
 from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 
 from .. import __version__
+from ..data.cameras import llff_poses_bounds_rows
 from ..synth.colmap_io import write_colmap_model
 from ..synth.config import SynthSceneConfig
 from ..synth.generate import check_target, commit_dir, to_uint8, write_png
@@ -169,19 +170,17 @@ def llff_poses_bounds(
 ) -> np.ndarray:
     """LLFF poses_bounds [V, 17]: 3x5 [R | t | hwf] in LLFF's axis order (down, right, back), then near, far.
 
-    As in LLFF's imgs2poses: columns (x, y, z) of the OpenCV camera-to-world become (y, x, -z); hwf = (H, W, fx);
-    near/far are the 0.1 / 99.9 percentiles of the z-depths of the points each view observes, else of its depth
-    map, else of all points in front of it, else a guess from the camera spread.
+    The pose encoding is the data readers' own (`gsmsdr_ns.data.cameras.llff_poses_bounds_rows`: columns (x, y, z)
+    of the OpenCV camera-to-world become (y, x, -z); hwf = (H, W, fx)); near/far are the 0.1 / 99.9 percentiles of
+    the z-depths of the points each view observes, else of its depth map, else of all points in front of it, else a
+    guess from the camera spread.
     """
     c2w = np.linalg.inv(w2cs)
     V = len(w2cs)
-    out = np.zeros((V, 17))
+    bounds = np.zeros((V, 2))
     centres = c2w[:, :3, 3]
     spread = float(np.linalg.norm(centres - centres.mean(0), axis=1).max()) or 1.0
     for v in range(V):
-        R, t = c2w[v, :3, :3], c2w[v, :3, 3]
-        w, h = sizes[v]
-        pose = np.column_stack([R[:, 1], R[:, 0], -R[:, 2], t, [h, w, Ks[v][0, 0]]])  # [3, 5]
         has_points = points_xyz is not None and len(points_xyz) > 0
         cam = points_xyz @ w2cs[v, :3, :3].T + w2cs[v, :3, 3] if has_points else np.zeros((0, 3))
         zs = cam[obs[0][obs[1] == v], 2] if (has_points and obs is not None) else np.zeros(0)
@@ -190,12 +189,11 @@ def llff_poses_bounds(
         if zs.size == 0:
             zs = cam[cam[:, 2] > 1e-6, 2]
         if zs.size:
-            near, far = np.percentile(zs, 0.1), np.percentile(zs, 99.9)
+            bounds[v] = np.percentile(zs, 0.1), np.percentile(zs, 99.9)
         else:
-            near, far = 0.05 * spread, 20.0 * spread
-        out[v, :15] = pose.ravel()
-        out[v, 15:] = near, far
-    return out
+            bounds[v] = 0.05 * spread, 20.0 * spread
+    focal = np.array([K[0, 0] for K in Ks], dtype=np.float64)
+    return llff_poses_bounds_rows(c2w, np.asarray(sizes).reshape(V, 2), focal, bounds)
 
 
 # ------------------------------------------------------------------------------------------------ the driver

@@ -1,19 +1,14 @@
 """Fast CPU rasterize_to_pixels: a C++/OpenMP kernel (csrc/rasterize_cpu.cpp), JIT-compiled on first use.
 
 The build goes through torch.utils.cpp_extension.load, like gsplat's CUDA code, into
-~/.cache/gsmsdr_ns/torch_extensions/<torch version>/ (or $TORCH_EXTENSIONS_DIR). It happens at most once per
-process; torch's file lock serialises concurrent builds. `cpp_backend_available()` and `cpp_backend_error()`
-never raise, so callers can fall back to the PyTorch kernel with a clear reason.
+~/.cache/gsmsdr_ns/torch_extensions/<torch version>/ (or $TORCH_EXTENSIONS_DIR), by the loader shared with the blur
+kernels (`gsmsdr_ns._cpp_ext`). It happens at most once per process; torch's file lock serialises concurrent builds.
+`cpp_backend_available()` and `cpp_backend_error()` never raise, so callers can fall back to the PyTorch kernel
+with a clear reason.
 """
 
 from __future__ import annotations
 
-import logging
-import os
-import shlex
-import shutil
-import sys
-import threading
 import weakref
 from pathlib import Path
 from typing import Optional, Tuple
@@ -21,139 +16,22 @@ from typing import Optional, Tuple
 import torch
 from torch import Tensor
 
-_EXT_NAME = "gsmsdr_rasterize_cpu"
-_SOURCE = Path(__file__).resolve().parent / "csrc" / "rasterize_cpu.cpp"
+from gsmsdr_ns._cpp_ext import CppExtension
 
-_lock = threading.Lock()
-_ops = None  # torch.ops.gsmsdr_ns once loaded
-_error: Optional[str] = None
-_attempted = False
-
-
-def build_directory() -> Path:
-    """Where the extension is built: $TORCH_EXTENSIONS_DIR/<name> or ~/.cache/gsmsdr_ns/torch_extensions/<torch>/<name>."""
-    root = os.environ.get("TORCH_EXTENSIONS_DIR")
-    if root:
-        base = Path(root)
-    else:
-        version = torch.__version__.replace("+", "_")
-        base = Path.home() / ".cache" / "gsmsdr_ns" / "torch_extensions" / version
-    return base / _EXT_NAME
+EXTENSION = CppExtension(
+    name="gsmsdr_rasterize_cpu",
+    source=Path(__file__).resolve().parent / "csrc" / "rasterize_cpu.cpp",
+    namespace="gsmsdr_ns",
+    what="C++ rasterizer",
+)
 
 
-def _find_compiler() -> Optional[str]:
-    """Path of the C++ compiler torch will use ($CXX or c++), None when it does not exist."""
-    cxx = os.environ.get("CXX", "c++")
-    parts = shlex.split(cxx) if cxx.strip() else []
-    # the first word is the program ("ccache g++", "g++ -fsomething")
-    return cxx if parts and shutil.which(parts[0]) else None
-
-
-def _ninja_dir() -> Optional[str]:
-    """Directory holding the ninja binary (PATH, the interpreter's bin dir, or the `ninja` pip package)."""
-    found = shutil.which("ninja")
-    if found:
-        return os.path.dirname(found)
-    # a venv used without activation: ninja sits next to the interpreter
-    beside = Path(sys.executable).parent / "ninja"
-    if beside.exists():
-        return str(beside.parent)
-    try:
-        import ninja  # type: ignore[import-not-found]
-
-        return getattr(ninja, "BIN_DIR", None)
-    except ImportError:
-        return None
-
-
-def _tail(text: str, lines: int = 15) -> str:
-    return "\n".join(str(text).strip().splitlines()[-lines:])
-
-
-def _build():
-    """Compile and load the extension; returns torch.ops.gsmsdr_ns or raises RuntimeError with the reason."""
-    if not _SOURCE.is_file():
-        raise RuntimeError(f"C++ source not found: {_SOURCE} (broken installation?)")
-    cxx = _find_compiler()
-    if cxx is None:
-        wanted = os.environ.get("CXX", "c++")
-        raise RuntimeError(
-            f"no C++ compiler found (set CXX or install g++): {wanted!r} is not an executable on PATH"
-        )
-    ninja_dir = _ninja_dir()
-    if ninja_dir is None:
-        raise RuntimeError("ninja not found (pip install ninja); torch needs it to build C++ extensions")
-
-    # importing cpp_extension logs "No CUDA runtime is found" on CPU-only machines; irrelevant for a .cpp build
-    cpp_logger = logging.getLogger("torch.utils.cpp_extension")
-    level = cpp_logger.level
-    cpp_logger.setLevel(logging.ERROR)
-    try:
-        from torch.utils.cpp_extension import load
-    finally:
-        cpp_logger.setLevel(level)
-
-    build_dir = build_directory()
-    build_dir.mkdir(parents=True, exist_ok=True)
-    old_path = os.environ.get("PATH")
-    if ninja_dir not in (old_path or "").split(os.pathsep):
-        # torch runs `ninja` through PATH; a venv used without activation lacks it
-        os.environ["PATH"] = ninja_dir + (os.pathsep + old_path if old_path else "")
-    try:
-        load(
-            name=_EXT_NAME,
-            sources=[str(_SOURCE)],
-            extra_cflags=["-O3", "-fopenmp"],
-            extra_ldflags=["-fopenmp"],
-            build_directory=str(build_dir),
-            is_python_module=False,  # ops are registered with TORCH_LIBRARY
-            verbose=False,
-        )
-    except Exception as exc:  # compiler errors, missing headers, linker failures
-        raise RuntimeError(
-            f"building the C++ rasterizer in {build_dir} with {cxx!r} failed: {type(exc).__name__}: {_tail(exc)}"
-        ) from exc
-    finally:
-        if old_path is None:
-            os.environ.pop("PATH", None)
-        else:
-            os.environ["PATH"] = old_path
-    return torch.ops.gsmsdr_ns
-
-
-def load_cpu_extension():
-    """Build (once per process) and return the op namespace `torch.ops.gsmsdr_ns`.
-
-    Raises:
-        RuntimeError: the extension cannot be built; the message says what is missing.
-    """
-    global _ops, _error, _attempted
-    with _lock:
-        if not _attempted:
-            _attempted = True
-            try:
-                _ops = _build()
-            except Exception as exc:  # never retry a failed build in this process
-                _error = str(exc)
-        if _ops is None:
-            raise RuntimeError(_error)
-        return _ops
-
-
-def cpp_backend_available() -> bool:
-    """True when the C++ kernel builds and loads. Never raises."""
-    try:
-        load_cpu_extension()
-        return True
-    except Exception:
-        return False
-
-
-def cpp_backend_error() -> Optional[str]:
-    """Why the C++ kernel is unavailable (None when it works). Never raises."""
-    if cpp_backend_available():
-        return None
-    return _error or "unknown error while loading the C++ rasterizer"
+# This module's loader API, bound to its extension (`CppExtension`): where it is built; build once and return
+# `torch.ops.gsmsdr_ns` (RuntimeError saying what is missing otherwise); and whether / why not it loads (never raise).
+build_directory = EXTENSION.build_directory
+load_cpu_extension = EXTENSION.load
+cpp_backend_available = EXTENSION.available
+cpp_backend_error = EXTENSION.error
 
 
 def _check_inputs(

@@ -8,7 +8,6 @@ same `meta` keys that gsplat's DefaultStrategy reads, so densification and pruni
 from __future__ import annotations
 
 import math
-import warnings
 from typing import Dict, Literal, Optional, Tuple
 
 import torch
@@ -20,7 +19,6 @@ from gsmsdr_ns.render.sh import eval_sh_colors
 from gsmsdr_ns.render.tiles import isect_offset_encode, isect_tiles
 
 CpuBackend = Literal["auto", "cpp", "torch"]
-_fallback_warned = False
 
 
 def resolve_cpu_backend(requested: CpuBackend = "auto") -> str:
@@ -28,26 +26,15 @@ def resolve_cpu_backend(requested: CpuBackend = "auto") -> str:
 
     Asking for "cpp" explicitly raises if the extension cannot be built.
     """
-    global _fallback_warned
     if requested == "torch":
         return "torch"
     if requested not in ("auto", "cpp"):
         raise ValueError(f"cpu_backend must be 'auto', 'cpp' or 'torch', got {requested!r}")
-    from gsmsdr_ns.render.pixels_cpp import cpp_backend_available, cpp_backend_error
+    from gsmsdr_ns.render.pixels_cpp import EXTENSION
 
-    if cpp_backend_available():
-        return "cpp"
-    reason = cpp_backend_error()
-    if requested == "cpp":
-        raise RuntimeError(f"the C++ CPU rasterizer is unavailable: {reason}")
-    if not _fallback_warned:
-        warnings.warn(
-            f"gsmsdr: C++ CPU rasterizer unavailable ({reason}); using the slower PyTorch rasterizer.",
-            RuntimeWarning,
-            stacklevel=3,
-        )
-        _fallback_warned = True
-    return "torch"
+    return EXTENSION.choose_backend(
+        requested, unavailable="C++ CPU rasterizer", fallback="the slower PyTorch rasterizer", stacklevel=3
+    )
 
 
 def rasterize_to_pixels(

@@ -9,7 +9,6 @@ Precedence: built-in defaults < --preset YAML < explicit flags.
 
 from __future__ import annotations
 
-import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -20,6 +19,7 @@ from typing import Literal
 import tyro
 from rich.console import Console
 
+from .._cli import preset_from_argv, run_entrypoint
 from .config import SynthSceneConfig, load_preset
 from .generate import generate_scene
 
@@ -71,39 +71,19 @@ class SynthCLI:
         return out
 
 
-def _preset_from_argv(argv: Sequence[str]) -> Path | None:
-    """Find --preset before tyro parses, so the preset can become the defaults that flags override."""
-    for i, arg in enumerate(argv):
-        if arg == "--preset" and i + 1 < len(argv):
-            return Path(argv[i + 1])
-        if arg.startswith("--preset="):
-            return Path(arg.split("=", 1)[1])
-    return None
-
-
 def parse(argv: Sequence[str] | None = None) -> SynthCLI:
     """Parse CLI args (sys.argv[1:] by default) into a SynthCLI."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    preset = _preset_from_argv(argv)
+    preset = preset_from_argv(argv)
     scene = load_preset(preset) if preset is not None and preset.is_file() else SynthSceneConfig()
     if preset is not None and not preset.is_file():
         raise FileNotFoundError(f"preset {preset} not found")
     return tyro.cli(SynthCLI, args=argv, default=SynthCLI(preset=preset, scene=scene))
 
 
-def _exit_on_sigterm(signum, _frame) -> None:
-    # SystemExit unwinds through generate_scene's cleanup, so a killed run leaves no temp directory.
-    raise SystemExit(128 + signum)
-
-
 def entrypoint() -> None:
     """Console-script entry point."""
-    signal.signal(signal.SIGTERM, _exit_on_sigterm)
-    try:
-        parse().main()
-    except (FileExistsError, FileNotFoundError, ValueError) as e:
-        CONSOLE.print(f"[bold red]error:[/bold red] {e}")
-        sys.exit(1)
+    run_entrypoint(parse, CONSOLE)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,201 @@
+"""JIT-built C++/OpenMP CPU extensions, shared by the rasterizer (`render.pixels_cpp`) and the blur kernels
+(`blur.kernels_cpp`).
+
+Each extension is one .cpp file registering its ops with TORCH_LIBRARY. It is built through
+torch.utils.cpp_extension.load, like gsplat's CUDA code, into ~/.cache/gsmsdr_ns/torch_extensions/<torch version>/<name>
+(or $TORCH_EXTENSIONS_DIR/<name>), at most once per process; torch's file lock serialises concurrent builds. A
+failed build is not retried in the same process, and `available()` / `error()` never raise, so callers can fall back
+to their PyTorch twin with a clear reason (`choose_backend` does that, warning once).
+
+Imports only torch and the standard library: `gsmsdr_ns.render` and `gsmsdr_ns.blur` both use it without nerfstudio.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shlex
+import shutil
+import sys
+import threading
+import warnings
+from pathlib import Path
+from typing import Optional
+
+import torch
+
+
+def extensions_root() -> Path:
+    """$TORCH_EXTENSIONS_DIR or ~/.cache/gsmsdr_ns/torch_extensions/<torch version>."""
+    root = os.environ.get("TORCH_EXTENSIONS_DIR")
+    if root:
+        return Path(root)
+    return Path.home() / ".cache" / "gsmsdr_ns" / "torch_extensions" / torch.__version__.replace("+", "_")
+
+
+def find_compiler() -> Optional[str]:
+    """Path of the C++ compiler torch will use ($CXX or c++), None when it does not exist."""
+    cxx = os.environ.get("CXX", "c++")
+    parts = shlex.split(cxx) if cxx.strip() else []
+    # the first word is the program ("ccache g++", "g++ -fsomething")
+    return cxx if parts and shutil.which(parts[0]) else None
+
+
+def ninja_dir() -> Optional[str]:
+    """Directory holding the ninja binary (PATH, the interpreter's bin dir, or the `ninja` pip package)."""
+    found = shutil.which("ninja")
+    if found:
+        return os.path.dirname(found)
+    # a venv used without activation: ninja sits next to the interpreter
+    beside = Path(sys.executable).parent / "ninja"
+    if beside.exists():
+        return str(beside.parent)
+    try:
+        import ninja  # type: ignore[import-not-found]
+
+        return getattr(ninja, "BIN_DIR", None)
+    except ImportError:
+        return None
+
+
+def _tail(text: object, lines: int = 15) -> str:
+    return "\n".join(str(text).strip().splitlines()[-lines:])
+
+
+def _import_cpp_extension_load():
+    """torch.utils.cpp_extension.load, imported without its "No CUDA runtime is found" log (irrelevant for .cpp)."""
+    cpp_logger = logging.getLogger("torch.utils.cpp_extension")
+    level = cpp_logger.level
+    cpp_logger.setLevel(logging.ERROR)
+    try:
+        from torch.utils.cpp_extension import load
+    finally:
+        cpp_logger.setLevel(level)
+    return load
+
+
+class CppExtension:
+    """One lazily built C++ CPU extension and the op namespace it registers.
+
+    Args:
+        name: extension (and build directory) name, e.g. "gsmsdr_rasterize_cpu".
+        source: the .cpp file.
+        namespace: the TORCH_LIBRARY namespace its ops live in, returned as `torch.ops.<namespace>`.
+        what: what it is, for messages ("C++ rasterizer").
+    """
+
+    def __init__(self, name: str, source: Path, namespace: str, what: str) -> None:
+        self.name = name
+        self.source = Path(source)
+        self.namespace = namespace
+        self.what = what
+        self._lock = threading.Lock()
+        self._ops = None
+        self._error: Optional[str] = None
+        self._attempted = False
+        self._fallback_warned = False
+
+    def build_directory(self) -> Path:
+        """$TORCH_EXTENSIONS_DIR/<name> or ~/.cache/gsmsdr_ns/torch_extensions/<torch version>/<name>."""
+        return extensions_root() / self.name
+
+    def _build(self):
+        """Compile and load the extension; returns torch.ops.<namespace> or raises RuntimeError with the reason."""
+        if not self.source.is_file():
+            raise RuntimeError(f"C++ source not found: {self.source} (broken installation?)")
+        cxx = find_compiler()
+        if cxx is None:
+            wanted = os.environ.get("CXX", "c++")
+            raise RuntimeError(
+                f"no C++ compiler found (set CXX or install g++): {wanted!r} is not an executable on PATH"
+            )
+        ninja = ninja_dir()
+        if ninja is None:
+            raise RuntimeError("ninja not found (pip install ninja); torch needs it to build C++ extensions")
+        load = _import_cpp_extension_load()
+
+        build_dir = self.build_directory()
+        build_dir.mkdir(parents=True, exist_ok=True)
+        old_path = os.environ.get("PATH")
+        if ninja not in (old_path or "").split(os.pathsep):
+            # torch runs `ninja` through PATH; a venv used without activation lacks it
+            os.environ["PATH"] = ninja + (os.pathsep + old_path if old_path else "")
+        try:
+            load(
+                name=self.name,
+                sources=[str(self.source)],
+                extra_cflags=["-O3", "-fopenmp"],
+                extra_ldflags=["-fopenmp"],
+                build_directory=str(build_dir),
+                is_python_module=False,  # ops are registered with TORCH_LIBRARY
+                verbose=False,
+            )
+        except Exception as exc:  # compiler errors, missing headers, linker failures
+            raise RuntimeError(
+                f"building the {self.what} in {build_dir} with {cxx!r} failed: {type(exc).__name__}: {_tail(exc)}"
+            ) from exc
+        finally:
+            if old_path is None:
+                os.environ.pop("PATH", None)
+            else:
+                os.environ["PATH"] = old_path
+        return getattr(torch.ops, self.namespace)
+
+    def load(self):
+        """Build (once per process) and return the op namespace `torch.ops.<namespace>`.
+
+        Raises:
+            RuntimeError: the extension cannot be built; the message says what is missing.
+        """
+        with self._lock:
+            if not self._attempted:
+                self._attempted = True
+                try:
+                    self._ops = self._build()
+                except Exception as exc:  # never retry a failed build in this process
+                    self._error = str(exc)
+            if self._ops is None:
+                raise RuntimeError(self._error)
+            return self._ops
+
+    def available(self) -> bool:
+        """True when the extension builds and loads. Never raises."""
+        try:
+            self.load()
+            return True
+        except Exception:
+            return False
+
+    def error(self) -> Optional[str]:
+        """Why the extension is unavailable (None when it works). Never raises."""
+        if self.available():
+            return None
+        return self._error or f"unknown error while loading the {self.what}"
+
+    def choose_backend(self, requested: str, unavailable: str, fallback: str, stacklevel: int = 2) -> str:
+        """"cpp" when the extension loads; else "torch", warning once per process why.
+
+        `requested` is "auto" or "cpp" (callers handle "torch" and invalid values, whose messages differ); an
+        explicit "cpp" raises instead of falling back.
+
+        Args:
+            unavailable: the subject of the messages, "C++ CPU rasterizer" in "the C++ CPU rasterizer is unavailable".
+            fallback: what is used instead, "the slower PyTorch rasterizer" in "...; using <fallback>."
+            stacklevel: the warning's stacklevel as seen from the caller of this method.
+
+        Raises:
+            RuntimeError: `requested == "cpp"` and the extension cannot be built.
+        """
+        if self.available():
+            return "cpp"
+        reason = self.error()
+        if requested == "cpp":
+            raise RuntimeError(f"the {unavailable} is unavailable: {reason}")
+        if not self._fallback_warned:
+            warnings.warn(
+                f"gsmsdr: {unavailable} unavailable ({reason}); using {fallback}.",
+                RuntimeWarning,
+                stacklevel=stacklevel + 1,
+            )
+            self._fallback_warned = True
+        return "torch"
