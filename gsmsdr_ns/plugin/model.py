@@ -10,22 +10,46 @@ Differences from ``SplatfactoModel``, each kept as a small override that extends
 * a point cloud that is empty or too small falls back to random initialisation with a warning;
 * a non-finite loss stops training with :class:`NonFiniteLossError` naming the step;
 * checkpoints resize the existing Gaussian parameters in place when loaded, so optimizers built before loading
-  (``ns-train --load-dir``) keep updating the model's parameters.
+  (``ns-train --load-dir``) keep updating the model's parameters;
+* GS-MSDR's degradation models, built only for the effects the scene calls for (one ``DegradationProfile`` per
+  training image, from the dataparser's ``metadata["degradations"]`` or the ``degradation`` mode): the blur field
+  (MAAN + HPKO) for blurred images, the resolution-loss model for images of known lower resolution, nothing for
+  sharp ones. While training, ``rgb`` is the render passed through the image's degradation model (what the loss
+  compares with the degraded photo) and ``rgb_sharp`` the render itself; at evaluation ``rgb`` is always the sharp
+  render, and the viewer can also show ``degraded``, ``kernel_size`` and ``blur_mask``.
 """
 
 from __future__ import annotations
 
 import contextlib
 import warnings
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, Iterator, List, Optional, Tuple, Type, Union
+from typing import Dict, Iterator, List, Literal, Optional, Tuple, Type, Union
 from urllib.parse import urlparse
 
 import torch
+import torch.nn.functional as F
 from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig
+from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
+
+from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
+from gsmsdr_ns.blur.hpko import HPKOScheduler
+from gsmsdr_ns.blur.kernels import apply_pixel_kernels
+from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, effective_factor
+from gsmsdr_ns.plugin.degradation_plan import (
+    DegradationPlan,
+    coarsen_kernels,
+    describe_profiles,
+    kernel_spread,
+    nearest_view,
+    preview_downscale,
+    training_profiles,
+)
 
 _lpips_warning_shown = False  # the "LPIPS disabled" warning is shown once per process, however many models are built
 
@@ -46,6 +70,20 @@ class GSMSDRModelConfig(SplatfactoModelConfig):
     """GS-MSDR model: splatfacto's Gaussian parameters and densification, rendered on CPU or GPU."""
 
     _target: Type = field(default_factory=lambda: GSMSDRModel)
+    degradation: Literal["auto", "motion", "defocus", "mixres", "sharp"] = "auto"
+    """What degraded the training images. auto: per image, from the dataparser's records (degradation.json);
+    images nothing is known about get the blur field (any blur, any resolution loss). motion / defocus / mixres /
+    sharp: that for every training image the records do not call undegraded (sharp: plain splatfacto)."""
+    blur_field: BlurFieldConfig = field(default_factory=BlurFieldConfig)
+    """The blur field (MAAN + HPKO) simulating blur on training views; built only when some image needs it."""
+    resolution_kernel_size: int = 3
+    """Size of the learned residual kernel of the resolution-loss model (images of known lower resolution)."""
+    viewer_blur_outputs: bool = True
+    """At evaluation, also output degraded (the blur simulated for the nearest training view), kernel_size (blur
+    extent in pixels) and blur_mask, for the viewer; rgb stays the sharp render. Needs a blur field."""
+    viewer_blur_max_side: int = 128
+    """The viewer blur outputs are computed on the render shrunk by a power of two until its longer side is at most
+    this (0: full resolution), then enlarged back, so their cost does not grow with the viewer's resolution."""
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -148,6 +186,58 @@ class GSMSDRModel(SplatfactoModel):
             self._init_colours(seed[1])
         if not self.has_lpips:
             self._warn_lpips_disabled(lpips_path)
+        self._populate_degradation_modules()
+
+    def _populate_degradation_modules(self) -> None:
+        """One profile per training image, and only the degradation models those profiles need.
+
+        * ``blur_field`` (:class:`BlurField`, ``num_train_views`` rows of view embedding, depth input when some
+          image's blur depends on depth), its HPKO scheduler ``hpko`` with its running state ``hpko_state`` (a plain
+          dict, like ``strategy_state``) and ``train_camera_centres`` (persistent [N, 3] buffer: the viewer's
+          blur outputs use the view embedding of the nearest training camera): when some image is blurred or lost
+          resolution by an unknown factor;
+        * ``resolution_model`` (:class:`ResolutionLossModel`): when some image has a known resolution-loss factor > 1.
+
+        A sharp scene builds none of them and trains as plain splatfacto. They are initialised under
+        ``torch.random.fork_rng``: building them leaves the random stream that training draws from (random
+        backgrounds, densification) exactly as it would be without them.
+        """
+        metadata = self.kwargs.get("metadata")
+        self.profiles: List[DegradationProfile] = training_profiles(
+            self.config.degradation, metadata, self.num_train_data
+        )
+        self.blur_field: Optional[BlurField] = None
+        self.hpko: Optional[HPKOScheduler] = None
+        self.hpko_state: Optional[Dict] = None
+        self.resolution_model: Optional[ResolutionLossModel] = None
+        if any(p.needs_blur_field for p in self.profiles):
+            use_depth = any(p.needs_depth for p in self.profiles)
+            with torch.random.fork_rng(devices=[]):
+                self.blur_field = self.config.blur_field.setup(
+                    num_train_views=self.num_train_data, use_depth=use_depth
+                )
+            self.hpko = self.config.blur_field.make_scheduler(
+                num_downscales=self.config.num_downscales, resolution_schedule=self.config.resolution_schedule
+            )
+            self.hpko_state = self.hpko.initialize_state()
+            self.register_buffer("train_camera_centres", torch.full((self.num_train_data, 3), float("nan")))
+        mixres = [p for p in self.profiles if p.needs_resolution_model]
+        if mixres:
+            upsample = Counter(p.mixres_upsample for p in mixres).most_common(1)[0][0]
+            self.resolution_model = ResolutionLossModel(
+                num_views=self.num_train_data, kernel_size=self.config.resolution_kernel_size, upsample=upsample
+            )
+        if self.num_train_data > 0:
+            CONSOLE.log(f"gsmsdr: training views: {describe_profiles(self.profiles)} -> {self._describe_modules()}")
+
+    def _describe_modules(self) -> str:
+        parts = []
+        if self.blur_field is not None:
+            depth = "RGB-D" if self.blur_field.uses_depth else "RGB"
+            parts.append(f"blur field ({self.config.blur_field.mode}, {depth}, kernels {self.hpko.kernel_sizes})")
+        if self.resolution_model is not None:
+            parts.append("resolution-loss model")
+        return " + ".join(parts) or "plain splatfacto (no degradation model)"
 
     @staticmethod
     def _warn_lpips_disabled(lpips_path: Path) -> None:
@@ -222,20 +312,27 @@ class GSMSDRModel(SplatfactoModel):
     # -- rendering ------------------------------------------------------------------------------------------
 
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:
-        """Render one camera: ``rgb`` [H, W, 3], ``depth`` [H, W, 1] (eval only), ``accumulation``, ``background``."""
+        """Render one camera: ``rgb`` [H, W, 3], ``depth`` [H, W, 1] (eval only), ``accumulation``, ``background``.
+
+        Training a degraded image adds ``rgb_sharp`` (the render; ``rgb`` is then its simulated degradation) and
+        ``blur_mask`` [H, W, 1] when the blur field ran. Evaluation adds the viewer's blur outputs (see
+        ``viewer_blur_outputs``); ``rgb`` is the sharp render.
+        """
         if not isinstance(camera, Cameras):
             raise TypeError(f"gsmsdr renders a nerfstudio Cameras object, got {type(camera).__name__}")
         if camera.shape[0] != 1:
             raise ValueError(f"gsmsdr renders one camera at a time, got {camera.shape[0]}")
 
-        K, width, height = intrinsics_at_scale(camera, self._get_downscale_factor(), self.device)
+        downscale = self._get_downscale_factor()
+        K, width, height = intrinsics_at_scale(camera, downscale, self.device)
         gaussians = self._gaussians_in_crop()
         if gaussians is None:
             full_width, full_height = int(camera.width.item()), int(camera.height.item())
             return self.get_empty_outputs(full_width, full_height, self.background_color.to(self.device))
 
+        plan = self._degradation_plan(camera, downscale)
         viewmats = viewmats_from_camera_to_worlds(self._camera_to_worlds(camera))
-        with_depth = self.config.output_depth_during_training or not self.training
+        with_depth = self.config.output_depth_during_training or not self.training or plan.needs_depth
         render, alpha, self.info = self._rasterize(gaussians, viewmats, K, width, height, with_depth)
         if self.training:
             self.strategy.step_pre_backward(
@@ -248,12 +345,142 @@ class GSMSDRModel(SplatfactoModel):
             rgb = self._apply_bilateral_grid(rgb, camera.metadata["cam_idx"], height, width)
         if not self.training:
             background = background.expand(height, width, 3)
-        return {
+        depth = self._expected_depth(render, alpha) if with_depth else None
+        outputs = {
             "rgb": rgb.squeeze(0),
-            "depth": self._expected_depth(render, alpha) if with_depth else None,
+            "depth": depth,
             "accumulation": alpha.squeeze(0),
             "background": background,
         }
+        if not plan.is_plain:
+            outputs.update(self._simulate_degradation(outputs["rgb"], depth, plan))
+        elif not self.training and self.config.viewer_blur_outputs and self.blur_field is not None:
+            outputs.update(self._blur_preview(camera, outputs["rgb"], depth))
+        return outputs
+
+    # -- degradation (training) -----------------------------------------------------------------------------
+
+    def _degradation_plan(self, camera: Cameras, downscale: int) -> DegradationPlan:
+        """What to simulate for this training camera, by the profile of ``camera.metadata["cam_idx"]``.
+
+        Nothing at evaluation, for cameras outside the training set (no ``cam_idx``) and for sharp images. The
+        blur field runs once the HPKO scheduler is past its warm-up, at the scale of the *current* render downscale
+        (so it follows the resolution schedule; explicit ``blur_field.switch_steps`` take over when set); the
+        resolution model runs while the image's factor, relative to the current downscale, is still > 1.
+        """
+        if not self.training or not camera.metadata or "cam_idx" not in camera.metadata:
+            return DegradationPlan()
+        view_id = int(camera.metadata["cam_idx"])
+        profile = self.profiles[view_id]
+        if profile.is_sharp:
+            return DegradationPlan(view_id)
+        blur_scale = None
+        if profile.needs_blur_field and self.hpko is not None:
+            follow = None if self.hpko.switch_steps is not None else downscale
+            blur_scale = self.hpko.update(self.hpko_state, self.step, downscale=follow)
+        factor = 1.0
+        if profile.needs_resolution_model and self.resolution_model is not None:
+            factor = effective_factor(profile.mixres_factor, downscale)
+        uses_depth = self.blur_field is not None and self.blur_field.uses_depth
+        return DegradationPlan(view_id, blur_scale, uses_depth, factor)
+
+    def _simulate_degradation(
+        self, rgb: Tensor, depth: Optional[Tensor], plan: DegradationPlan
+    ) -> Dict[str, Tensor]:
+        """Pass the sharp render [H, W, 3] (and depth [H, W, 1]) through this image's degradation models, in the
+        order a camera degrades a photo: blur (blur field), then resolution loss (resolution model).
+
+        Returns ``rgb`` (the simulated degraded image), ``rgb_sharp`` and, when the blur field ran, ``blur_mask``.
+        """
+        image = rgb.permute(2, 0, 1)[None]  # [1, 3, H, W]
+        view_ids = torch.tensor([plan.view_id], device=image.device)
+        outputs: Dict[str, Tensor] = {"rgb_sharp": rgb}
+        if plan.blur_scale is not None:
+            assert self.blur_field is not None
+            depth_in = depth.permute(2, 0, 1)[None] if plan.blur_uses_depth else None
+            kernels, mask = self.blur_field(image, depth_in, view_ids, plan.blur_scale.scale)
+            image = BlurField.degrade(image, kernels, mask)
+            outputs["blur_mask"] = mask[0].permute(1, 2, 0)
+        if plan.resolution_factor > 1.0:
+            assert self.resolution_model is not None
+            image = self.resolution_model(image, [plan.resolution_factor], view_ids)
+        outputs["rgb"] = image[0].permute(1, 2, 0)
+        return outputs
+
+    # -- degradation (viewer) -------------------------------------------------------------------------------
+
+    def _blur_preview(self, camera: Cameras, rgb: Tensor, depth: Tensor) -> Dict[str, Tensor]:
+        """Viewer outputs of the blur field for an evaluation camera, with the nearest training view's embedding.
+
+        The field runs at the HPKO scale training uses at the model's step (``hpko.scale_for_step``), on the render
+        shrunk to that scale's resolution, or further (powers of two) until its longer side is at most
+        ``viewer_blur_max_side``; in that case the kernels are re-expressed on the coarser grid
+        (:func:`coarsen_kernels`) so the simulated blur keeps its extent. Results are enlarged back to the render's
+        size. ``degraded`` [H, W, 3] = mask * blurred + (1 - mask) * render; ``kernel_size`` [H, W, 1] = the
+        kernels' RMS blur radius in pixels of the render, times the mask (0 where the field keeps the render
+        sharp); ``blur_mask`` [H, W, 1].
+        """
+        assert self.blur_field is not None and self.hpko is not None
+        height, width = rgb.shape[:2]
+        info = self.hpko.scale_for_step(self.step)
+        d = preview_downscale(height, width, self.config.viewer_blur_max_side, at_least=info.downsample)
+        small = (max(1, height // d), max(1, width // d))
+        image = rgb.permute(2, 0, 1)[None]  # [1, 3, H, W]
+        low = image if d == 1 else F.interpolate(image, size=small, mode="area")
+        low_depth = None
+        if self.blur_field.uses_depth:
+            depth_in = depth.permute(2, 0, 1)[None]
+            low_depth = depth_in if d == 1 else F.interpolate(depth_in, size=small, mode="area")
+        centre = camera.camera_to_worlds.reshape(-1, 3, 4)[0, :3, 3]
+        view_ids = torch.tensor([nearest_view(self.train_camera_centres, centre)], device=image.device)
+        kernels, mask = self.blur_field(low, low_depth, view_ids, info.scale)
+        extent = kernel_spread(kernels) * info.downsample * mask  # kernel taps are pixels at the scale's resolution
+        blurred = apply_pixel_kernels(low, coarsen_kernels(kernels, d // info.downsample))
+
+        def enlarge(x: Tensor) -> Tensor:
+            return x if d == 1 else F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False)
+
+        mask_full = enlarge(mask)
+        degraded = (mask_full * enlarge(blurred) + (1.0 - mask_full) * image).clamp(0.0, 1.0)
+        return {
+            "degraded": degraded[0].permute(1, 2, 0),
+            "kernel_size": enlarge(extent)[0].permute(1, 2, 0),
+            "blur_mask": mask_full[0].permute(1, 2, 0),
+        }
+
+    # -- training callbacks ---------------------------------------------------------------------------------
+
+    def get_training_callbacks(
+        self, training_callback_attributes: TrainingCallbackAttributes
+    ) -> List[TrainingCallback]:
+        """splatfacto's callbacks; also records the training camera centres for the viewer's blur outputs."""
+        pipeline = training_callback_attributes.pipeline
+        datamanager = getattr(pipeline, "datamanager", None)
+        dataset = getattr(datamanager, "train_dataset", None)
+        if self.blur_field is not None and dataset is not None:
+            self.set_train_camera_centres(dataset.cameras.camera_to_worlds)
+        return super().get_training_callbacks(training_callback_attributes)
+
+    @torch.no_grad()
+    def set_train_camera_centres(self, camera_to_worlds: Tensor) -> None:
+        """Store the centres of the training cameras ([N, 3, 4] poses, the training split's order)."""
+        if self.blur_field is None:
+            return
+        centres = camera_to_worlds.reshape(-1, 3, 4)[:, :3, 3]
+        if centres.shape != self.train_camera_centres.shape:
+            raise ValueError(
+                f"expected {self.train_camera_centres.shape[0]} training camera poses, got {centres.shape[0]}"
+            )
+        self.train_camera_centres.copy_(centres)
+
+    def get_param_groups(self) -> Dict[str, List[torch.nn.Parameter]]:
+        """splatfacto's groups, plus ``blur_field`` and ``resolution_model`` when those modules exist."""
+        groups = super().get_param_groups()
+        if self.blur_field is not None:
+            self.blur_field.get_param_groups(groups)
+        if self.resolution_model is not None:
+            groups["resolution_model"] = list(self.resolution_model.parameters())
+        return groups
 
     def _camera_to_worlds(self, camera: Cameras) -> Tensor:
         """[1, 3, 4] pose on the model's device, corrected by the camera optimizer while training."""
@@ -314,10 +541,20 @@ class GSMSDRModel(SplatfactoModel):
     # -- losses and metrics ---------------------------------------------------------------------------------
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
+        """splatfacto's loss on ``rgb`` (the simulated degradation while training) plus the blur mask regulariser."""
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
         if self.training:
+            if self.blur_field is not None:
+                self.blur_field.get_loss_dict(loss_dict, outputs.get("blur_mask"))
             self._check_finite(loss_dict)
         return loss_dict
+
+    def get_metrics_dict(self, outputs, batch) -> Dict[str, Tensor]:
+        """splatfacto's metrics; ``blur_kernel_size`` (the HPKO kernel size) on steps where the blur field ran."""
+        metrics_dict = super().get_metrics_dict(outputs, batch)
+        if self.training and "blur_mask" in outputs and self.hpko_state is not None:
+            metrics_dict["blur_kernel_size"] = self.hpko_state["kernel_size"]
+        return metrics_dict
 
     def _check_finite(self, loss_dict: Dict[str, Tensor]) -> None:
         values = torch.stack([torch.as_tensor(v).detach().float().sum().cpu() for v in loss_dict.values()])

@@ -1,0 +1,370 @@
+"""The blur field wired into training: built and evaluated only for the images that need it.
+
+Scenes are 10-view 64x48 ``gsmsdr-synth`` variants (motion, mixres, sharp) in the Deblur-NeRF layout, read by the
+default ``gsmsdr-data`` parser. In-process tests drive nerfstudio's real ``Trainer.train_iteration`` with the real
+datamanager, optimizers and training callbacks (no viewer, no writers); the CLI tests run ``ns-train`` / ``ns-eval``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import shutil
+import warnings
+from collections import defaultdict
+from pathlib import Path
+from typing import Dict, List
+
+import pytest
+import torch
+import yaml
+from conftest import TINY_SCENE, TRAIN_FLAGS, run_cli
+from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.trainer import Trainer
+from test_plugin_model import look_from, make_camera, seed_cloud
+
+import gsmsdr_ns.plugin  # noqa: F401  (checkpoint globals for torch.load)
+from gsmsdr_ns.blur import BlurField, BlurFieldConfig, ResolutionLossModel
+from gsmsdr_ns.plugin.degradation_plan import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
+from gsmsdr_ns.plugin.method_config import gsmsdr_trainer_config
+from gsmsdr_ns.plugin.model import GSMSDRModelConfig, GSMSDRWarning
+
+SHARP_TRAIN_VIEWS = ("frame_00002.png", "frame_00005.png", "frame_00009.png")  # training views (hold=8)
+CLI_STEPS = 20
+BLUR_FLAGS = ("--pipeline.model.blur-field.warmup", "4")
+
+
+def make_variant(out: Path, variant: str) -> Path:
+    from gsmsdr_ns.degrade import generate_variant
+    from gsmsdr_ns.synth.config import SynthSceneConfig
+
+    return generate_variant(out, SynthSceneConfig(**TINY_SCENE), variant)
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory) -> Dict[str, Path]:
+    """motion, mixres and sharp variants, and ``partly_sharp``: the motion scene with three training views replaced
+    by their sharp twins and marked ``degraded: false`` in degradation.json (read-only)."""
+    root = tmp_path_factory.mktemp("blur_scenes")
+    out = {name: make_variant(root / name, name) for name in ("motion", "mixres", "sharp")}
+    partly = Path(shutil.copytree(out["motion"], root / "partly_sharp"))
+    doc = json.loads((partly / "degradation.json").read_text())
+    for name in SHARP_TRAIN_VIEWS:
+        shutil.copyfile(partly / "images_test" / name, partly / "images" / name)
+        doc["images"][name] = {"split": "train", "degraded": False, "effects": {}}
+    (partly / "degradation.json").write_text(json.dumps(doc))
+    out["partly_sharp"] = partly
+    return out
+
+
+# -- in-process training with nerfstudio's Trainer ---------------------------------------------------------------
+
+
+class InProcessTrainer:
+    """``Trainer.train_iteration`` with the gsmsdr preset on CPU, without viewer or event writers."""
+
+    def __init__(self, data: Path, tmp: Path, warmup: int = 2, **model_overrides):
+        config = gsmsdr_trainer_config()
+        config.machine.device_type = "cpu"
+        config.vis = "tensorboard"
+        config.output_dir = tmp / "outputs"
+        config.pipeline.datamanager.data = data
+        model = config.pipeline.model
+        model.num_downscales, model.warmup_length, model.refine_every = 0, 10, 10
+        model.blur_field = dataclasses.replace(model.blur_field, warmup=warmup)
+        for name, value in model_overrides.items():
+            setattr(model, name, value)
+        trainer = Trainer(config)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", GSMSDRWarning)
+            trainer.pipeline = config.pipeline.setup(
+                device="cpu", test_mode="val", world_size=1, local_rank=0, grad_scaler=trainer.grad_scaler
+            )
+        trainer.optimizers = trainer.setup_optimizers()
+        attributes = TrainingCallbackAttributes(trainer.optimizers, trainer.grad_scaler, trainer.pipeline, trainer)
+        trainer.callbacks = trainer.pipeline.get_training_callbacks(attributes)
+        self.trainer = trainer
+        self.model = trainer.pipeline.model
+        self.steps: List[dict] = []  # per step: view, output keys, loss terms
+
+    def train(self, num_steps: int) -> None:
+        record: dict = {}
+
+        def on_model(_module, inputs, outputs):
+            record.update(view=int(inputs[0].metadata["cam_idx"]), keys=set(outputs))
+
+        handle = self.model.register_forward_hook(on_model)
+        try:
+            for _ in range(num_steps):
+                step = len(self.steps)
+                for callback in self.trainer.callbacks:
+                    callback.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+                loss, loss_dict, _ = self.trainer.train_iteration(step)
+                for callback in self.trainer.callbacks:
+                    callback.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+                assert math.isfinite(loss.item()), loss_dict
+                self.steps.append({"step": step, **record, "losses": set(loss_dict)})
+        finally:
+            handle.remove()
+
+
+def count_calls(module: torch.nn.Module, calls: List[tuple]):
+    """Forward hook appending ``(view ids, input height, last argument)`` for every call of ``module``: the HPKO
+    scale for the blur field (``render, depth, view_ids, scale``), the view ids for the resolution model (``render,
+    factors, view_ids``: factors are then read from ``inputs[1]``)."""
+
+    def hook(_module, inputs, _outputs):
+        render, views = inputs[0], inputs[2]
+        last = inputs[3] if len(inputs) > 3 else inputs[1]
+        calls.append((tuple(int(v) for v in views.tolist()), render.shape[-2], last))
+
+    return module.register_forward_hook(hook)
+
+
+def test_blur_field_is_never_evaluated_on_sharp_training_images(scenes, tmp_path):
+    run = InProcessTrainer(scenes["partly_sharp"], tmp_path, warmup=2)
+    model = run.model
+    names = [record["name"] for record in run.trainer.pipeline.datamanager.train_dataset.metadata["degradations"]]
+    sharp = {i for i, name in enumerate(names) if name in SHARP_TRAIN_VIEWS}
+    assert len(sharp) == 3 and {i for i, p in enumerate(model.profiles) if p.is_sharp} == sharp
+    assert isinstance(model.blur_field, BlurField) and model.blur_field.uses_depth
+    assert model.resolution_model is None
+    assert torch.isfinite(model.train_camera_centres).all()  # filled from the datamanager at training start
+
+    calls: List[tuple] = []
+    handle = count_calls(model.blur_field, calls)
+    try:
+        run.train(18)  # 8 training views: steps 8-15 are one full epoch after the warm-up
+    finally:
+        handle.remove()
+
+    field_views = defaultdict(int)
+    for views, height, scale in calls:
+        field_views[views[0]] += 1
+        assert (height, scale) == (48, 1)  # num_downscales 0: full resolution, finest HPKO scale
+    after_warmup = [s for s in run.steps if s["step"] >= 2]
+    assert {s["view"] for s in after_warmup} == set(range(8))  # every view, sharp ones included, was trained
+    assert not sharp & set(field_views), f"blur field ran on sharp views {sorted(sharp & set(field_views))}"
+    blurred_steps = [s for s in after_warmup if s["view"] not in sharp]
+    assert sum(field_views.values()) == len(blurred_steps) > 0  # once per blurred step, never during warm-up
+    for s in run.steps:
+        degraded = s["step"] >= 2 and s["view"] not in sharp
+        assert ("blur_mask_reg" in s["losses"]) == degraded, s
+        assert ({"rgb_sharp", "blur_mask"} <= s["keys"]) == degraded, s
+        if not degraded:
+            assert "rgb_sharp" not in s["keys"] and s["keys"] == {"rgb", "depth", "accumulation", "background"}
+    # the field's parameters are optimised with their own group
+    assert "blur_field" in run.trainer.optimizers.optimizers
+
+
+def test_sharp_scene_builds_no_degradation_model(scenes, tmp_path):
+    run = InProcessTrainer(scenes["sharp"], tmp_path)
+    model = run.model
+    assert all(p.is_sharp for p in model.profiles)
+    assert model.blur_field is None and model.resolution_model is None and model.hpko is None
+    assert not any(k.startswith(("blur_field", "resolution_model", "train_camera")) for k in model.state_dict())
+    assert set(run.trainer.optimizers.parameters) & {"blur_field", "resolution_model"} == set()
+    run.train(4)
+    assert all(s["keys"] == {"rgb", "depth", "accumulation", "background"} for s in run.steps)
+    model.eval()
+    camera, _ = run.trainer.pipeline.datamanager.next_eval_image(0)
+    assert "degraded" not in model.get_outputs_for_camera(camera)
+
+
+def test_mixres_scene_uses_the_resolution_model_not_the_blur_field(scenes, tmp_path):
+    run = InProcessTrainer(scenes["mixres"], tmp_path)
+    model = run.model
+    factors = [p.mixres_factor for p in model.profiles]
+    assert sorted(set(factors)) == [1, 2, 3, 4]
+    assert model.blur_field is None and isinstance(model.resolution_model, ResolutionLossModel)
+    assert "resolution_model" in run.trainer.optimizers.optimizers
+    residual_before = model.resolution_model.residual.detach().clone()
+    calls: List[tuple] = []
+    handle = count_calls(model.resolution_model, calls)
+    try:
+        run.train(8)  # one epoch: every view once
+    finally:
+        handle.remove()
+    ran_on = sorted(views[0] for views, _, _ in calls)
+    assert ran_on == sorted(i for i, f in enumerate(factors) if f > 1)
+    assert all(f == [float(factors[v[0]])] for v, _, f in calls)  # num_downscales 0: the full factor
+    assert not torch.equal(model.resolution_model.residual.detach(), residual_before)  # the residual is trained
+
+
+# -- model level: profiles -> modules, HPKO scale, viewer outputs --------------------------------------------------
+
+
+def records(kind: str, n: int = 4) -> List[dict]:
+    effects = {"motion": {"motion": {}}, "defocus": {"defocus": {}}, "sharp": {}}
+    if kind == "mixres":
+        return [{"split": "train", "degraded": f > 1, "effects": {"mixres": {"factor": f}}, "mixres_factor": f}
+                for f in (1, 2, 3, 4)[:n]]  # fmt: skip
+    return [{"split": "train", "degraded": kind != "sharp", "effects": effects[kind]} for _ in range(n)]
+
+
+def build(metadata, n: int = 4, **config):
+    config = GSMSDRModelConfig(**{"num_random": 100, **config})
+    scene_box = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GSMSDRWarning)
+        return config.setup(scene_box=scene_box, num_train_data=n, metadata=metadata, seed_points=seed_cloud())
+
+
+@pytest.mark.parametrize(
+    "degradation, degradations, field, depth, resolution",
+    [
+        ("auto", records("motion"), True, True, False),
+        ("auto", records("defocus"), True, True, False),
+        ("auto", records("sharp"), False, False, False),
+        ("auto", records("mixres"), False, False, True),
+        ("auto", None, True, True, False),  # nothing known: blur field, any blur
+        ("sharp", records("motion"), False, False, False),
+        ("motion", records("sharp"), False, False, False),  # images the records call undegraded stay sharp
+        ("motion", None, True, True, False),
+        ("mixres", None, True, False, False),  # resolution loss of unknown factor: the field learns it, RGB only
+    ],
+)
+def test_modules_follow_the_profiles(degradation, degradations, field, depth, resolution):
+    metadata = None if degradations is None else {"degradations": degradations}
+    model = build(metadata, degradation=degradation)
+    assert (model.blur_field is not None) == field
+    assert (model.blur_field is not None and model.blur_field.uses_depth) == depth
+    assert (model.resolution_model is not None) == resolution
+    groups = model.get_param_groups()
+    assert ("blur_field" in groups) == field and ("resolution_model" in groups) == resolution
+
+
+def test_records_must_match_the_training_images():
+    with pytest.raises(ValueError, match="describes the degradation of 3 training images, but there are 4"):
+        build({"degradations": records("motion", 3)})
+
+
+def test_hpko_scale_follows_the_current_render_downscale():
+    """num_downscales 2, resolution_schedule 4: 1/4 -> 1/2 -> full resolution; K = 5 -> 9 -> 17 in step."""
+    motion = {"degradations": records("motion")}
+    model = build(motion, num_downscales=2, resolution_schedule=4, blur_field=BlurFieldConfig(warmup=0))
+    model.train()
+    model.optimizers = None
+    calls: List[tuple] = []
+    handle = count_calls(model.blur_field, calls)
+    camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)
+    camera.metadata = {"cam_idx": 1}
+    for step in range(10):
+        model.step = step
+        outputs = model.get_outputs(camera)
+        assert outputs["rgb"].shape == outputs["rgb_sharp"].shape == outputs["blur_mask"].shape[:2] + (3,)
+    handle.remove()
+    assert [(h, s) for _, h, s in calls] == [(12, 3)] * 4 + [(24, 2)] * 4 + [(48, 1)] * 2
+    assert model.hpko_state["first_step"] == {3: 0, 2: 4, 1: 8}
+    assert model.hpko_state["kernel_size"] == 17
+
+
+def test_eval_rgb_is_the_sharp_render_and_viewer_outputs_are_added():
+    model = build({"degradations": records("motion")})
+    model.set_train_camera_centres(torch.stack([look_from([2.0, 0.5, 1.0]), look_from([-2.0, 0.5, 1.0])] * 2))
+    camera = make_camera(look_from([-1.9, 0.5, 1.1]), width=64, height=48)
+    model.eval()
+    outputs = model.get_outputs_for_camera(camera)
+    assert set(outputs) >= {"rgb", "degraded", "kernel_size", "blur_mask"}
+    assert outputs["degraded"].shape == (48, 64, 3) and outputs["kernel_size"].shape == (48, 64, 1)
+    assert float(outputs["kernel_size"].min()) >= 0.0 and torch.isfinite(outputs["degraded"]).all()
+    model.config.viewer_blur_outputs = False
+    plain = model.get_outputs_for_camera(camera)
+    assert set(plain) == {"rgb", "depth", "accumulation", "background"}
+    torch.testing.assert_close(plain["rgb"], outputs["rgb"])  # rgb is the sharp render either way
+
+
+def test_kernel_spread_and_coarsening():
+    K = 9
+    box = torch.full((1, K * K, 2, 3), 1.0 / (K * K), dtype=torch.float64)
+    expected = torch.full((1, 1, 2, 3), math.sqrt((K * K - 1) / 6), dtype=torch.float64)
+    torch.testing.assert_close(kernel_spread(box), expected)  # uniform box: variance (K^2 - 1) / 12 per axis
+    shifted = torch.zeros(1, K * K, 1, 1, dtype=torch.float64)
+    shifted[0, 3] = 1.0  # a pure shift does not blur
+    assert float(kernel_spread(shifted)) == 0.0
+    coarse = coarsen_kernels(box, 4)
+    assert coarse.shape == (1, 9, 2, 3)  # 9 -> 3 x 3 taps on a 4x coarser grid
+    torch.testing.assert_close(coarse.sum(dim=1), box.sum(dim=1))
+    assert coarsen_kernels(box, 1) is box
+    assert preview_downscale(384, 512, 128) == 4 and preview_downscale(48, 64, 128, at_least=2) == 2
+    centres = torch.tensor([[0.0, 0.0, 0.0], [float("nan")] * 3, [5.0, 0.0, 0.0]])
+    assert nearest_view(centres, torch.tensor([4.0, 0.0, 0.0])) == 2
+    assert nearest_view(torch.full((2, 3), float("nan")), torch.zeros(3)) == 0
+
+
+# -- the real CLI ------------------------------------------------------------------------------------------------
+
+
+def scalar_tags(run_dir: Path) -> Dict[str, List[float]]:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run_dir))
+    events.Reload()
+    return {tag: [e.value for e in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+
+
+@pytest.fixture(scope="module")
+def motion_run(scenes, tmp_path_factory):
+    work = tmp_path_factory.mktemp("motion_run")
+    args = ["gsmsdr", "--data", scenes["motion"], "--output-dir", work / "outputs", "--timestamp", "run",
+            "--max-num-iterations", CLI_STEPS, "--steps-per-save", CLI_STEPS, *TRAIN_FLAGS, *BLUR_FLAGS]  # fmt: skip
+    proc = run_cli("ns-train", args, cwd=work)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-5000:]
+    return work / "outputs" / "motion" / "gsmsdr" / "run"
+
+
+def test_ns_train_gsmsdr_on_a_motion_scene_trains_the_blur_field(motion_run):
+    tags = scalar_tags(motion_run)
+    assert all(math.isfinite(v) for v in tags["Train Loss"])
+    mask_reg = tags["Train Loss Dict/blur_mask_reg"]
+    assert mask_reg and all(0 < v < 0.001 + 1e-9 for v in mask_reg)
+    assert tags["Train Metrics Dict/blur_kernel_size"][-1] == 17
+    ckpt = torch.load(motion_run / "nerfstudio_models" / f"step-{CLI_STEPS - 1:09d}.ckpt", map_location="cpu")
+    state = ckpt["pipeline"]
+    assert torch.isfinite(state["_model.train_camera_centres"]).all()
+    assert any(k.startswith("_model.blur_field.heads.") for k in state)
+    assert ckpt["optimizers"]["blur_field"]["state"]  # Adam stepped the field
+
+
+def test_ns_eval_reports_psnr_on_the_sharp_test_views(motion_run, tmp_path):
+    output = tmp_path / "eval.json"
+    proc = run_cli("ns-eval", ["--load-config", motion_run / "config.yml", "--output-path", output], cwd=tmp_path)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-4000:]
+    results = json.loads(output.read_text())["results"]
+    assert 10.0 < results["psnr"] < 60.0 and 0.0 < results["ssim"] <= 1.0
+
+
+def test_checkpoint_with_a_blur_field_loads_for_the_viewer(motion_run):
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GSMSDRWarning)
+        _, pipeline, _, step = eval_setup(motion_run / "config.yml", test_mode="test")
+    model = pipeline.model
+    assert step == CLI_STEPS - 1 and model.step == step
+    state = torch.load(motion_run / "nerfstudio_models" / f"step-{step:09d}.ckpt", map_location="cpu")["pipeline"]
+    torch.testing.assert_close(model.train_camera_centres, state["_model.train_camera_centres"])
+    camera, batch = pipeline.datamanager.fixed_indices_eval_dataloader[0]
+    outputs = model.get_outputs_for_camera(camera)
+    assert {"degraded", "kernel_size", "blur_mask"} <= set(outputs)
+    metrics, _ = model.get_image_metrics_and_images(outputs, batch)
+    assert math.isfinite(metrics["psnr"])
+
+
+def test_ns_train_gsmsdr_lite_with_ablation_switches(scenes, tmp_path):
+    args = ["gsmsdr-lite", "--data", scenes["motion"], "--output-dir", tmp_path / "outputs", "--timestamp", "lite",
+            "--max-num-iterations", 10, "--steps-per-save", 10, *TRAIN_FLAGS, *BLUR_FLAGS,
+            "--pipeline.model.blur-field.mode", "msd_only", "--pipeline.model.blur-field.gaka", "False"]  # fmt: skip
+    proc = run_cli("ns-train", args, cwd=tmp_path)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-5000:]
+    run_dir = tmp_path / "outputs" / "motion" / "gsmsdr-lite" / "lite"
+    config = yaml.load((run_dir / "config.yml").read_text(), Loader=yaml.Loader)
+    blur = config.pipeline.model.blur_field
+    assert (blur.mode, blur.gaka, blur.size, config.pipeline.model.sh_degree) == ("msd_only", False, "lite", 1)
+    state = torch.load(run_dir / "nerfstudio_models" / f"step-{9:09d}.ckpt", map_location="cpu")["pipeline"]
+    field_keys = [k for k in state if k.startswith("_model.blur_field.")]
+    assert field_keys and not any(".mca." in k or "gaka" in k for k in field_keys)  # msd_only: BAGS' plain CNN
+    tags = scalar_tags(run_dir)
+    assert tags["Train Loss Dict/blur_mask_reg"] and all(math.isfinite(v) for v in tags["Train Loss"])
