@@ -216,11 +216,12 @@ class BlurField(nn.Module):
             kernel_weights: [B, K*K, H, W].
             mask: [B, 1, H, W].
         Returns:
-            [B, C, H, W]
+            [B, C, H, W], in the render's dtype (or wider). Kernels predicted in a lower precision (the heads under
+            ``torch.autocast``) are applied in the render's dtype.
         """
         if mask.dim() != 4 or mask.shape[1] != 1 or mask.shape[-2:] != render.shape[-2:]:
             raise ValueError(f"mask must be [B, 1, H, W] matching render {list(render.shape)}, got {list(mask.shape)}")
-        return mask * apply_pixel_kernels(render, kernel_weights) + (1.0 - mask) * render
+        return mask * apply_pixel_kernels(render, kernel_weights.to(render.dtype)) + (1.0 - mask) * render
 
     # -------------------------------------------------------------------- nerfstudio-style shared-dict hooks
 

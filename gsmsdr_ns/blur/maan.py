@@ -233,6 +233,23 @@ class RGBDFeatures(nn.Module):
         return self.fans(self.sfe(x))
 
 
+class _InstanceNorm2d(nn.InstanceNorm2d):
+    """``nn.InstanceNorm2d`` that also accepts a single pixel while training.
+
+    PyTorch refuses a 1 x 1 map in training mode; its instance statistics are the pixel itself, so the normalised
+    output is exactly 0 (what the formula gives, with a zero gradient). Same parameters and buffers (none by
+    default) as the parent, so checkpoints are unchanged.
+    """
+
+    def forward(self, x: Tensor) -> Tensor:
+        if self.training and not self.track_running_stats and x.shape[-2] * x.shape[-1] == 1:
+            out = x - x  # (x - mean) / sqrt(var + eps) with mean = x, var = 0
+            if self.affine:
+                out = out + self.bias[:, None, None]
+            return out
+        return super().forward(x)
+
+
 class BAGSFeatures(nn.Module):
     """BAGS' plain CNN: Conv5x5 ReLU IN, Conv5x5 ReLU IN, Conv3x3. [B, in_ch, H, W] -> [B, out_ch, H, W]."""
 
@@ -242,10 +259,10 @@ class BAGSFeatures(nn.Module):
         self.net = nn.Sequential(
             nn.Conv2d(in_ch, width, 5, padding=2),
             nn.ReLU(),
-            nn.InstanceNorm2d(width),
+            _InstanceNorm2d(width),
             nn.Conv2d(width, width, 5, padding=2),
             nn.ReLU(),
-            nn.InstanceNorm2d(width),
+            _InstanceNorm2d(width),
             nn.Conv2d(width, out_ch, 3, padding=1),
         )
 

@@ -127,6 +127,12 @@ def rasterize_to_pixels_torch(
         rows = torch.cat(pixel_rows)
         out_colors = out_colors.index_copy(0, rows, torch.cat(tile_colors))
         out_trans = out_trans.index_copy(0, rows, torch.cat(tile_trans))
+    else:
+        # nothing intersects any tile: tie the inputs into the graph with an exact zero (a sum over no element),
+        # so they still get (zero) gradients, like the C++ kernel and gsplat, instead of None (which breaks
+        # DefaultStrategy's `means2d.grad.clone()` and leaves optimizers without a gradient)
+        anchor = m2d[:0].sum() + con[:0].sum() + col[:0].sum() + opa[:0].sum()
+        out_colors, out_trans = out_colors + anchor, out_trans + anchor
     out_colors = out_colors.reshape(C, H, W, D)
     out_trans = out_trans.reshape(C, H, W, 1)
     if backgrounds is not None:

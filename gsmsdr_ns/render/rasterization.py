@@ -161,6 +161,45 @@ def rasterization(
         raise ValueError(f"rasterization: image size must be positive, got {width}x{height}")
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, covars)
 
+    # gsplat's CUDA kernels compute in float32 whatever torch.autocast says; so does the CPU path (a bfloat16
+    # projection would move centres by pixels, and the C++ kernel needs one dtype)
+    dtype = torch.float64 if means.dtype == torch.float64 else torch.float32
+
+    def cast(t: Optional[Tensor]) -> Optional[Tensor]:
+        return None if t is None else t.to(dtype)  # the same tensor when it already has that dtype
+
+    with torch.autocast(device_type="cpu", enabled=False):
+        return _rasterization_cpu(
+            cast(means), cast(quats), cast(scales), cast(opacities), cast(colors), cast(viewmats), cast(Ks), width,
+            height, near_plane, far_plane, radius_clip, eps2d, sh_degree, tile_size, cast(backgrounds), render_mode,
+            absgrad, rasterize_mode, cast(covars), cpu_backend,
+        )  # fmt: skip
+
+
+def _rasterization_cpu(
+    means: Tensor,
+    quats: Optional[Tensor],
+    scales: Optional[Tensor],
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    near_plane: float,
+    far_plane: float,
+    radius_clip: float,
+    eps2d: float,
+    sh_degree: Optional[int],
+    tile_size: int,
+    backgrounds: Optional[Tensor],
+    render_mode: str,
+    absgrad: bool,
+    rasterize_mode: str,
+    covars: Optional[Tensor],
+    cpu_backend: CpuBackend,
+) -> Tuple[Tensor, Tensor, Dict]:
+    """The CPU path of `rasterization` (arguments checked, one floating dtype, autocast off)."""
     C, N = viewmats.shape[0], means.shape[0]
     if covars is None:
         covars = covariance_3d(quats, scales)
@@ -176,7 +215,9 @@ def rasterization(
         colors_c = colors.expand(C, N, colors.shape[-1]) if colors.dim() == 2 else colors
     else:
         cam_centres = torch.linalg.inv(viewmats)[:, :3, 3]  # [C, 3]
-        dirs = means[None, :, :] - cam_centres[:, None, :]  # [C, N, 3]
+        # a non-finite centre (culled by the projection) must not send NaN to the cameras' gradient through dirs
+        finite_means = torch.where(means.isfinite().all(-1, keepdim=True), means, torch.zeros_like(means))
+        dirs = finite_means[None, :, :] - cam_centres[:, None, :]  # [C, N, 3]
         coeffs = colors.expand(C, *colors.shape) if colors.dim() == 3 else colors
         colors_c = torch.clamp_min(eval_sh_colors(sh_degree, dirs, coeffs) + 0.5, 0.0)
 
