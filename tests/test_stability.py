@@ -571,7 +571,7 @@ def add_callback(trainer, where: str, func, first: bool = True) -> None:
     trainer.callbacks.insert(0 if first else len(trainer.callbacks), callback)
 
 
-@pytest.mark.parametrize("poison", ["image", "opacities"])
+@pytest.mark.parametrize("poison", ["image", "opacities", "means", "scales", "quats"])
 def test_trainer_stops_on_a_nan_naming_the_step(trainer_factory, poison):
     from gsmsdr_ns.plugin.model import NonFiniteLossError
 
@@ -586,9 +586,9 @@ def test_trainer_stops_on_a_nan_naming_the_step(trainer_factory, poison):
         if poison == "image":  # one NaN pixel in every cached training image
             for item in trainer.pipeline.datamanager.cached_train:
                 item["image"][3, 4, 1] = float("nan")
-        else:
+        else:  # a NaN position / scale / rotation only culls its Gaussian: the loss alone would stay finite
             with torch.no_grad():
-                model.gauss_params["opacities"][0] = float("nan")
+                model.gauss_params[poison][0] = float("nan")
 
     steps_done: List[int] = []
     add_callback(trainer, "BEFORE_TRAIN_ITERATION", inject)
@@ -596,8 +596,10 @@ def test_trainer_stops_on_a_nan_naming_the_step(trainer_factory, poison):
     with pytest.raises(NonFiniteLossError) as caught:
         trainer.train()
     message = str(caught.value)
-    assert f"step {bad_step} " in message and "main_loss=nan" in message, message
-    assert ("non-finite Gaussian parameters: opacities" if poison == "opacities" else "parameters: none") in message
+    assert f"step {bad_step} " in message, message
+    if poison in ("image", "opacities"):
+        assert "main_loss=nan" in message, message
+    assert (f"non-finite Gaussian parameters: {poison}" if poison != "image" else "parameters: none") in message
     assert steps_done == list(range(bad_step)), "training went on after the non-finite loss"
 
 

@@ -557,15 +557,21 @@ class GSMSDRModel(SplatfactoModel):
         return metrics_dict
 
     def _check_finite(self, loss_dict: Dict[str, Tensor]) -> None:
+        """Raise :class:`NonFiniteLossError` if a loss term or a Gaussian parameter is NaN or infinite.
+
+        Parameters are checked too: a NaN position, scale or rotation only culls its Gaussian, so the loss would
+        stay finite while the scene silently decays.
+        """
         values = torch.stack([torch.as_tensor(v).detach().float().sum().cpu() for v in loss_dict.values()])
-        if bool(torch.isfinite(values).all()):
+        params_ok = torch.stack([torch.isfinite(p.detach()).all() for p in self.gauss_params.values()])
+        if bool(torch.isfinite(values).all()) and bool(params_ok.all()):
             return
         terms = ", ".join(f"{name}={value:.4g}" for name, value in zip(loss_dict, values.tolist()))
-        bad = [name for name, param in self.gauss_params.items() if not bool(torch.isfinite(param).all())]
+        bad = [name for name, ok in zip(self.gauss_params.keys(), params_ok.tolist()) if not ok]
         raise NonFiniteLossError(
-            f"gsmsdr: non-finite training loss at step {self.step} ({terms}); non-finite Gaussian parameters: "
-            f"{', '.join(bad) or 'none'}; {self.num_points} Gaussians. Lower the learning rates in --optimizers, "
-            "check the input images and poses, or resume from an earlier checkpoint."
+            f"gsmsdr: non-finite training loss or parameters at step {self.step} ({terms}); non-finite Gaussian "
+            f"parameters: {', '.join(bad) or 'none'}; {self.num_points} Gaussians. Lower the learning rates in "
+            "--optimizers, check the input images and poses, or resume from an earlier checkpoint."
         )
 
     def get_image_metrics_and_images(
