@@ -1,10 +1,12 @@
-"""End-to-end demo (``make demo`` / ``python -m gsmsdr_ns.demo``): synthetic scene -> train -> ns-eval -> PNG.
+"""End-to-end demo (``make demo`` / ``python -m gsmsdr_ns.demo``): blurry scene -> train -> ns-eval -> PNG.
 
-1. generates the default procedural scene into ``data/demo`` unless it is already there;
-2. trains ``gsmsdr`` on it with nerfstudio's trainer (CPU here: a few minutes on 2 cores; CUDA when available),
-   with refinement and learning-rate schedules shortened to the demo's step count;
-3. runs ns-eval's ``ComputePSNR`` on the test views, which writes the metrics JSON;
-4. saves ``ground truth | render`` of the first test view as a PNG;
+1. generates the default procedural scene with camera-motion blur on its training views (``gsmsdr-synth
+   --variant motion``: Deblur-NeRF layout, sharp held-out test views) into ``data/demo-motion`` unless it is there;
+2. trains ``gsmsdr-lite`` on the blurry training views with nerfstudio's trainer (CPU here: a few minutes on 2
+   cores; CUDA when available), with the HPKO / resolution, refinement and learning-rate schedules shortened to the
+   demo's step count;
+3. runs ns-eval's ``ComputePSNR`` on the sharp test views, which writes the metrics JSON;
+4. saves ``sharp ground truth | render`` of the first test view as a PNG;
 5. prints, as its last line, ``demo: psnr=<x> ssim=<y> eval_json=<path>``.
 """
 
@@ -26,8 +28,8 @@ from PIL import Image
 class Demo:
     """Train gsmsdr on the procedural demo scene and report test-view PSNR / SSIM."""
 
-    scene: Path = Path("data/demo")
-    """Scene directory; generated with the default ``gsmsdr-synth`` settings when it does not exist."""
+    scene: Path = Path("data/demo-motion")
+    """Scene directory; generated as the default ``gsmsdr-synth --variant motion`` scene when it does not exist."""
     output_dir: Path = Path("outputs/demo")
     """Where the training run, the eval JSON and the comparison PNG go."""
     steps: int = 1500
@@ -57,20 +59,20 @@ class Demo:
 
 
 def ensure_scene(scene: Path) -> Path:
-    """Reuse a generated scene (it has scene.json), or generate the default one into ``scene``."""
-    if (scene / "scene.json").is_file() and (scene / "sparse" / "0").is_dir():
+    """Reuse a generated degraded scene (it has degradation.json), or generate the default motion one."""
+    if (scene / "degradation.json").is_file() and (scene / "sparse" / "0").is_dir():
         return scene
-    from gsmsdr_ns.synth.generate import generate_scene
+    from gsmsdr_ns.degrade.variants import generate_variant
 
-    print(f"demo: generating the default procedural scene into {scene} ...", flush=True)
-    return generate_scene(scene)  # refuses to overwrite a non-empty directory that is not a scene
+    print(f"demo: generating the default procedural scene with motion blur into {scene} ...", flush=True)
+    return generate_variant(scene, variant="motion")  # refuses to overwrite a non-empty non-scene directory
 
 
 def demo_trainer_config(scene: Path, output_dir: Path, steps: int, device: str):
-    """The ``gsmsdr`` method config with schedules scaled down to ``steps``."""
-    from gsmsdr_ns.plugin.method_config import gsmsdr_trainer_config
+    """The ``gsmsdr-lite`` method config with schedules scaled down to ``steps``."""
+    from gsmsdr_ns.plugin.method_config import gsmsdr_lite_trainer_config
 
-    config = gsmsdr_trainer_config()
+    config = gsmsdr_lite_trainer_config()
     config.data = scene
     config.output_dir = output_dir
     config.experiment_name = "demo"
@@ -82,7 +84,9 @@ def demo_trainer_config(scene: Path, output_dir: Path, steps: int, device: str):
     if device != "auto":
         config.machine.device_type = device
     model = config.pipeline.model
-    model.num_downscales = 0  # the demo images are small (200x150)
+    model.num_downscales = 2  # HPKO: 1/4 resolution with 5x5 kernels, then 1/2 with 9x9, then full resolution
+    model.resolution_schedule = max(steps // 3, 1)
+    model.blur_field.warmup = max(steps // 20, 1)
     model.warmup_length = max(steps // 10, 1)
     model.refine_every = max(steps // 15, 1)
     model.stop_split_at = steps // 2
