@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
-from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo
+from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo, kernel_prior_logits, kernel_upsample_matrix
 from gsmsdr_ns.blur.maan import GAKA, MCA, SAFM, BAGSFeatures, RGBDFeatures, normalize_depth, positional_encoding_2d
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, down_up, effective_factor
 
@@ -237,6 +237,86 @@ def test_positional_encoding_and_depth_normalisation():
     d = torch.tensor([[[[2.0, 4.0], [float("inf"), 3.0]]]])
     n = normalize_depth(d)
     assert n.min() == 0 and n.max() <= 1 and torch.isfinite(n).all()
+
+
+# ------------------------------------------------------------------------------------------------ kernel start
+
+
+def kernel_rms_radius(weights: torch.Tensor) -> torch.Tensor:
+    """[B, K*K, H, W] kernels -> [B, H, W] RMS distance of their mass from the centre tap (taps)."""
+    K = int(round(weights.shape[1] ** 0.5))
+    r = torch.arange(K, dtype=weights.dtype) - K // 2
+    r2 = (r[:, None] ** 2 + r[None, :] ** 2).reshape(1, K * K, 1, 1)
+    return (weights * r2).sum(1).sqrt()
+
+
+def test_kernel_prior_is_a_centred_gaussian_with_learnable_tails():
+    logits = kernel_prior_logits(17, sigma=0.5)
+    w = torch.softmax(logits, 0).reshape(17, 17)
+    assert int(w.argmax()) == 17 * 8 + 8 and float(w[8, 8]) > 0.5
+    torch.testing.assert_close(w, w.flip(0)), torch.testing.assert_close(w, w.T)
+    assert float(logits.min()) == -8.0  # floored: the far taps keep a gradient
+    with pytest.raises(ValueError):
+        kernel_prior_logits(5, sigma=0.0)
+
+
+def test_kernel_upsample_matrix_is_exact_for_linear_logits():
+    for coarse, fine in [(5, 9), (9, 17), (9, 13), (3, 9)]:
+        M = kernel_upsample_matrix(coarse, fine).double()
+        assert M.shape == (fine * fine, coarse * coarse)
+        torch.testing.assert_close(M.sum(1), torch.ones(fine * fine, dtype=torch.float64))
+        c = torch.arange(coarse, dtype=torch.float64) - coarse // 2
+        u = torch.arange(fine, dtype=torch.float64) - fine // 2
+        coarse_logits = (0.3 * c[:, None] - 0.7 * c[None, :]).reshape(-1)
+        # a fine tap at u fine pixels reads the coarse kernel at u / 2 coarse pixels (clamped to its window)
+        uc = (u / 2).clamp(-(coarse // 2), coarse // 2)
+        expected = (0.3 * uc[:, None] - 0.7 * uc[None, :]).reshape(-1)
+        torch.testing.assert_close(M @ coarse_logits, expected)
+
+
+def test_untrained_field_simulates_almost_no_blur():
+    """The kernels start as the narrow prior (not a near-uniform K x K blur): the untrained field's simulated
+    degradation at the first trained (coarsest) scale stays close to the render, so the mask is not taught to
+    switch the field off. Finer scales start from the coarser kernel re-sampled on their grid."""
+    for progressive in (True, False):
+        f = field(progressive=progressive)
+        render, depth, view_ids = inputs(H=32, W=48)
+        weights, mask = f(render, depth, view_ids, 3)
+        assert float(kernel_rms_radius(weights.detach()).max()) < 1.0
+        out = f.degrade(render, weights, mask)
+        uniform = f.degrade(render, torch.full_like(weights, 1.0 / weights.shape[1]), mask)
+        assert float((out - render).abs().mean()) < 0.5 * float((uniform - render).abs().mean())
+
+
+def test_for_schedule_keeps_the_scales_the_resolution_schedule_visits():
+    config = BlurFieldConfig()
+    assert config.for_schedule(2).kernel_sizes == (5, 9, 17) and config.for_schedule(5).kernel_sizes == (5, 9, 17)
+    assert config.for_schedule(1).kernel_sizes == (9, 17) and config.for_schedule(0).kernel_sizes == (17,)
+    sched = config.for_schedule(1).make_scheduler(num_downscales=1, resolution_schedule=100)
+    assert sched.scale_for_step(0) == ScaleInfo(2, 9, 2) and sched.scale_for_step(100) == ScaleInfo(1, 17, 1)
+    explicit = BlurFieldConfig(switch_steps=(10, 20))
+    assert explicit.for_schedule(0) is explicit  # explicit switch steps keep every scale
+    assert BlurFieldConfig(hpko=False).for_schedule(1).kernel_sizes == (5, 9, 17)  # one scale (K_1) anyway
+
+
+def test_progressive_heads_keep_the_blur_extent_across_a_scale_switch():
+    """A wide blur learnt at the coarse scale is still there, twice as many (finer) pixels wide, right after
+    HPKO switches to the finer scale; independent heads (progressive=False) restart from the prior."""
+    render, depth, view_ids = inputs(H=32, W=48)
+    coarse_render, coarse_depth = render[:, :, ::2, ::2], depth[:, :, ::2, ::2]
+    radii = {}
+    for progressive in (True, False):
+        f = field(progressive=progressive)
+        with torch.no_grad():  # "learnt" coarse kernels: a wide Gaussian (sigma 1.5 coarse pixels)
+            f.heads.blur["3"].weight.zero_()
+            f.heads.blur["3"].bias.copy_(kernel_prior_logits(5, sigma=1.5))
+        # the coarsest kernel is evaluated on the half-resolution render, then the next scale on the full one
+        wide = kernel_rms_radius(f(coarse_render, coarse_depth, view_ids, 3)[0].detach()).mean()
+        finer = kernel_rms_radius(f(render, depth, view_ids, 2)[0].detach()).mean()
+        radii[progressive] = (float(wide), float(finer))
+    wide, finer = radii[True]
+    assert 1.6 * wide < finer < 2.4 * wide, radii
+    assert radii[False][1] < 0.6 * finer, radii
 
 
 # ------------------------------------------------------------------------------------------------ scheduler

@@ -45,6 +45,11 @@ UPPER_BOUND_TARGET = 1.5
 """Target of the issue: test PSNR of the sharp upper bound minus gsmsdr (dB, at most)."""
 
 
+SCENE_DATA_VERSION = 2
+"""Bumped when generated scenes change for the same spec (2: motion sub-frames rendered with the scene's own
+anti-aliasing), so cached scenes of an older generator are not reused."""
+
+
 @dataclass(frozen=True)
 class SceneSpec:
     """A generated scene: the procedural scene's size and seed, and the degradation variant."""
@@ -59,7 +64,10 @@ class SceneSpec:
 
     @property
     def name(self) -> str:
-        return f"{self.variant}-{self.width}x{self.height}-v{self.num_views}-h{self.hold}-s{self.seed}"
+        return (
+            f"{self.variant}-{self.width}x{self.height}-v{self.num_views}-h{self.hold}-s{self.seed}"
+            f"-g{SCENE_DATA_VERSION}"
+        )
 
     def with_variant(self, variant: str) -> "SceneSpec":
         return dataclasses.replace(self, variant=variant)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import tyro
 
@@ -149,10 +149,96 @@ class AccuracyBench:
         print(f"accuracy: wrote {self.out / 'results.csv'} and {self.out / 'results.md'}")
 
 
-def entrypoint() -> None:
-    tyro.extras.subcommand_cli_from_dict(
-        {"raster": RasterBench, "degrade": DegradeBench, "kernels": KernelsBench, "accuracy": AccuracyBench}
-    ).main()
+@dataclass
+class SuiteBench:
+    """Run a benchmark suite (configs/bench/*.yaml: scenes x methods x step budgets x seeds) through nerfstudio's
+    trainer; writes results.csv, results.md and PNG plots into --out. Finished runs are kept in <out>/runs/ and
+    skipped when the suite runs again (an interrupted suite resumes). `gsmsdr-bench --quick` = `suite --config
+    quick`. See gsmsdr_ns/bench/suite.py."""
+
+    config: str = "quick"
+    """Suite YAML file, or the name of one in configs/bench/ (quick, full, ablations)."""
+    out: Optional[Path] = None
+    """Output folder (default: bench-results/<suite name>)."""
+    threads: Optional[int] = None
+    """torch intra-op threads, overriding the suite's `threads` (0: torch's default)."""
+    plots: bool = True
+    """Write the PNG plots."""
+    progress: bool = True
+    """Show progress bars."""
+
+    def main(self) -> None:
+        import shlex
+        import sys
+        import time
+        import warnings
+
+        # nerfstudio's camera utilities use torch.jit.script, which torch >= 2.10 reports as deprecated on import
+        warnings.filterwarnings("ignore", message=".*torch.jit.script.*", category=FutureWarning)
+        from gsmsdr_ns.bench.suite import SuiteConfigError, find_suite_file, load_suite, main_tables, run_suite
+
+        try:
+            suite = load_suite(find_suite_file(self.config))
+        except SuiteConfigError as e:
+            print(f"gsmsdr-bench suite: {e}", file=sys.stderr)
+            raise SystemExit(2) from None
+        if self.threads is not None:
+            suite.threads = self.threads
+        out = self.out if self.out is not None else Path("bench-results") / suite.name
+        command = "gsmsdr-bench " + " ".join(shlex.quote(a) for a in _invocation_args())
+        started = time.perf_counter()
+        try:
+            outcome = run_suite(suite, out, command=command, progress=self.progress, plots=self.plots)
+        except KeyboardInterrupt:
+            raise SystemExit(130) from None
+        print(main_tables((out / "results.md").read_text(encoding="utf8")))
+        print(f"suite {suite.name}: {len(outcome.trained)} runs trained, {len(outcome.reused)} reused, "
+              f"{len(outcome.failed)} failed, {len(outcome.skipped)} skipped in {time.perf_counter() - started:.0f} s")
+        print("wrote " + ", ".join(str(p) for p in outcome.outputs))
+        if outcome.failed:
+            raise SystemExit(1)
+
+
+SUBCOMMANDS = {
+    "raster": RasterBench,
+    "degrade": DegradeBench,
+    "kernels": KernelsBench,
+    "accuracy": AccuracyBench,
+    "suite": SuiteBench,
+}
+
+_ARGS: List[str] = []
+
+
+def _invocation_args() -> List[str]:
+    return list(_ARGS)
+
+
+def map_quick(argv: Sequence[str]) -> List[str]:
+    """``--quick`` (anywhere) means ``suite --config quick``: tyro's subcommands have no bare top-level flag."""
+    args = list(argv)
+    if "--quick" not in args:
+        return args
+    args = [a for a in args if a != "--quick"]
+    if args and args[0] == "suite":
+        args = args[1:]
+    elif args and not args[0].startswith("-"):
+        raise SystemExit(f"gsmsdr-bench: --quick runs the quick suite; it does not combine with {args[0]!r}")
+    if any(a == "--config" or a.startswith("--config=") for a in args):
+        raise SystemExit("gsmsdr-bench: --quick already selects the quick suite; drop --config")
+    return ["suite", "--config", "quick", *args]
+
+
+def entrypoint(argv: Optional[Sequence[str]] = None) -> None:
+    import os
+    import sys
+
+    # Idle OpenMP threads sleep instead of spinning (see the Makefile); must be set before torch loads OpenMP.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    raw = list(sys.argv[1:] if argv is None else argv)
+    _ARGS[:] = raw
+    description = "gsmsdr benchmarks. `gsmsdr-bench --quick` runs the quick suite (= `suite --config quick`)."
+    tyro.extras.subcommand_cli_from_dict(SUBCOMMANDS, args=map_quick(raw), description=description).main()
 
 
 if __name__ == "__main__":

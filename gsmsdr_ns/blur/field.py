@@ -19,6 +19,7 @@ The ablation switches ``gaka``, ``safm``, ``mca``, ``rgbd``, ``hpko`` (Table 6) 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, Dict, List, Literal, NamedTuple, Optional, Tuple
 
@@ -91,6 +92,15 @@ class BlurFieldConfig:
     is read or normalised."""
     hpko: bool = True
     """Coarse-to-fine kernel scales (Table 6 "HPKO"); False: one full-resolution scale with the finest kernel."""
+    progressive: bool = True
+    """Each finer HPKO scale refines the coarser scale's kernel (its logits re-sampled on the finer grid, plus a
+    residual head that starts near zero), so a scale switch keeps the blur learnt so far. False: independent heads
+    (BAGS), each starting from the prior."""
+    kernel_prior_sigma: float = 0.5
+    """Width (pixels at the coarsest scale) of the centred Gaussian the kernels start from: the untrained field
+    simulates almost no blur, instead of a near-uniform kernel that blurs everything."""
+    mask_init: float = 0.5
+    """Initial blending mask m (the coarsest head's bias), in (0, 1)."""
     mca_pool_size: int = 8
     """Output grid (P x P) of MCA's adaptive average pooling for the spatial context weights."""
     msd_hidden: int = 64
@@ -116,6 +126,8 @@ class BlurFieldConfig:
         dims = self.dims
         if dims.feature_dim < 2 or dims.mid_channels < 1 or dims.view_dim < 0 or dims.num_fans < 0:
             raise ValueError(f"invalid blur field widths {dims}")
+        if not self.kernel_prior_sigma > 0:
+            raise ValueError(f"kernel_prior_sigma must be > 0, got {self.kernel_prior_sigma}")
         if dims.pos_channels < 0 or dims.pos_channels % 4:
             raise ValueError(f"pos_channels must be a non-negative multiple of 4, got {dims.pos_channels}")
 
@@ -132,6 +144,18 @@ class BlurFieldConfig:
         if self.mode == "re_only":
             return BlurFieldModules(True, self.gaka, self.safm, self.mca, self.rgbd, False)
         return BlurFieldModules(True, self.gaka, self.safm, self.mca, self.rgbd, self.hpko)
+
+    def for_schedule(self, num_downscales: int) -> "BlurFieldConfig":
+        """This config with only the HPKO scales a resolution schedule starting at 1 / 2^num_downscales visits.
+
+        A scale coarser than the first training resolution would never be trained, yet with ``progressive`` heads
+        its untrained kernel would be where the finer ones start; dropping it keeps every trained scale starting
+        from the prior at its own resolution. Unchanged with explicit ``switch_steps`` or without HPKO.
+        """
+        if self.switch_steps is not None or not self.modules.hpko:
+            return self
+        keep = max(1, min(len(self.kernel_sizes), int(num_downscales) + 1))
+        return dataclasses.replace(self, kernel_sizes=tuple(self.kernel_sizes)[-keep:])
 
     def make_scheduler(self, num_downscales: int = 2, resolution_schedule: int = 3000) -> HPKOScheduler:
         """The HPKO scheduler for a model rendering with splatfacto's ``num_downscales`` / ``resolution_schedule``."""
@@ -175,7 +199,15 @@ class BlurField(nn.Module):
         channels = self.mcf.out_channels
         self.mca = MCA(channels, config.mca_pool_size) if mods.mca else None
         self.scales: Tuple[int, ...] = tuple(range(len(config.kernel_sizes), 0, -1)) if mods.hpko else (1,)
-        self.heads = HPKOHeads(channels, dims.mid_channels, config.kernel_sizes, self.scales)
+        self.heads = HPKOHeads(
+            channels,
+            dims.mid_channels,
+            config.kernel_sizes,
+            self.scales,
+            progressive=config.progressive,
+            prior_sigma=config.kernel_prior_sigma,
+            mask_init=config.mask_init,
+        )
 
     @property
     def num_train_views(self) -> int:

@@ -21,7 +21,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = ["ScaleInfo", "downsample_for_scale", "check_kernel_sizes", "HPKOScheduler", "HPKOHeads"]
+__all__ = [
+    "ScaleInfo",
+    "downsample_for_scale",
+    "check_kernel_sizes",
+    "kernel_prior_logits",
+    "kernel_upsample_matrix",
+    "HPKOScheduler",
+    "HPKOHeads",
+]
 
 
 class ScaleInfo(NamedTuple):
@@ -159,51 +167,130 @@ class HPKOScheduler:
         return info
 
 
+def kernel_prior_logits(kernel_size: int, sigma: float, floor: float = -8.0) -> Tensor:
+    """Logits of a centred isotropic Gaussian kernel: ``max(-r^2 / (2 sigma^2), floor)``, r in pixels.
+
+    Returns [K * K] (row-major window index). The floor keeps the outer taps learnable: a softmax tap at logit -100
+    would get no gradient, one at -8 still does (Adam normalises its small gradient).
+    """
+    if sigma <= 0:
+        raise ValueError(f"kernel prior sigma must be > 0, got {sigma}")
+    r = torch.arange(kernel_size, dtype=torch.float64) - (kernel_size - 1) / 2
+    r2 = r[:, None] ** 2 + r[None, :] ** 2
+    return (-r2 / (2.0 * sigma**2)).clamp_min(floor).reshape(-1).float()
+
+
+def kernel_upsample_matrix(coarse_size: int, fine_size: int, factor: int = 2) -> Tensor:
+    """Linear map taking a coarse kernel's logits (taps ``factor`` fine pixels apart) to a fine kernel's logits.
+
+    Fine tap at offset u (fine pixels) reads the coarse logits bilinearly at u / factor; taps beyond the coarse
+    window read its border (replicate). Returns [fine_size^2, coarse_size^2]; rows sum to 1.
+    """
+    cc, fc = (coarse_size - 1) / 2, (fine_size - 1) / 2
+
+    def axis_weights() -> Tensor:
+        w = torch.zeros(fine_size, coarse_size, dtype=torch.float64)
+        for i in range(fine_size):
+            x = min(max((i - fc) / factor + cc, 0.0), coarse_size - 1.0)
+            lo = min(int(math.floor(x)), coarse_size - 1)
+            hi = min(lo + 1, coarse_size - 1)
+            t = x - lo
+            w[i, lo] += 1.0 - t
+            w[i, hi] += t
+        return w
+
+    a = axis_weights()
+    return torch.einsum("ia,jb->ijab", a, a).reshape(fine_size**2, coarse_size**2).float()
+
+
 class HPKOHeads(nn.Module):
     """Per-scale heads (paper eqs. 11-13), stacked coarse to fine as in BAGS.
 
     ``M_base^S`` maps the MCF/MCA features to ``mid`` channels (1x1 conv + ReLU); each finer scale's base takes the
     previous (coarser) base output: ``f_mid^s = M_base^s(f_mid^(s+1))``, so a finer scale starts from what the
-    coarser one learnt. ``k^s = softmax_K(M_blur^s(f_mid^s))`` (K_s^2 channels) and
-    ``m^s = sigmoid(M_mask^s(f_mid^s))``.
+    coarser one learnt. ``k^s = softmax_K(z^s)`` (K_s^2 channels) and ``m^s = sigmoid(y^s)`` where, with
+    ``progressive`` (default), each finer scale refines the coarser one's prediction::
+
+        z^s = U_s z^(s+1) + M_blur^s(f_mid^s),   y^s = y^(s+1) + M_mask^s(f_mid^s)
+
+    (U_s: :func:`kernel_upsample_matrix`, the coarse kernel re-sampled on the 2x finer pixel grid). The finer heads
+    start near zero, so when HPKO switches scale the kernel keeps the blur extent learnt so far instead of
+    restarting from a random one. The coarsest head (every head without ``progressive``) starts from a narrow
+    centred Gaussian (``prior_sigma`` pixels, :func:`kernel_prior_logits`): the simulated blur starts close to the
+    render, so an untrained field does not blur everything and teach the mask to switch itself off.
 
     ``forward(features [B, C, H, W], scale) -> (kernel_weights [B, K_s^2, H, W], mask [B, 1, H, W])``.
     Kernel index k = i * K + j is row i, column j of the K x K window (row-major, like ``F.unfold``).
     """
 
-    def __init__(self, in_channels: int, mid_channels: int, kernel_sizes: Sequence[int], scales: Sequence[int]):
+    def __init__(
+        self,
+        in_channels: int,
+        mid_channels: int,
+        kernel_sizes: Sequence[int],
+        scales: Sequence[int],
+        progressive: bool = True,
+        prior_sigma: float = 0.5,
+        mask_init: float = 0.5,
+        head_init_scale: float = 0.1,
+    ):
         super().__init__()
         ks = check_kernel_sizes(kernel_sizes)
+        if not 0.0 < mask_init < 1.0:
+            raise ValueError(f"mask_init must be in (0, 1), got {mask_init}")
         self.scales = tuple(scales)  # coarse to fine
         self.kernel_sizes = {s: ks[len(ks) - s] for s in self.scales}
+        self.progressive = bool(progressive)
         self.base = nn.ModuleDict()
         self.blur = nn.ModuleDict()
         self.mask = nn.ModuleDict()
         c = in_channels
+        previous = None
         for s in self.scales:
             k = self.kernel_sizes[s]
             self.base[str(s)] = nn.Sequential(nn.Conv2d(c, mid_channels, 1), nn.ReLU())
             self.blur[str(s)] = nn.Conv2d(mid_channels, k * k, 1)
             self.mask[str(s)] = nn.Conv2d(mid_channels, 1, 1)
+            with torch.no_grad():
+                # small per-pixel variation around the bias: the kernels start as the prior (or the coarser kernel)
+                self.blur[str(s)].weight.mul_(head_init_scale)
+                self.mask[str(s)].weight.mul_(head_init_scale)
+                if previous is None or not self.progressive:
+                    self.blur[str(s)].bias.copy_(kernel_prior_logits(k, prior_sigma))
+                    self.mask[str(s)].bias.fill_(math.log(mask_init / (1.0 - mask_init)))
+                else:
+                    self.blur[str(s)].bias.zero_()
+                    self.mask[str(s)].bias.zero_()
+            if previous is not None and self.progressive:
+                matrix = kernel_upsample_matrix(self.kernel_sizes[previous], k)
+                self.register_buffer(f"upsample_{s}", matrix[:, :, None, None], persistent=False)
+            previous = s
             c = mid_channels
 
     def forward(self, features: Tensor, scale: int) -> Tuple[Tensor, Tensor]:
         if scale not in self.scales:
             raise ValueError(f"scale {scale} is not one of this field's scales {self.scales}")
         f = features
+        logits = mask_logits = None
         for s in self.scales:  # coarse to fine, stop at the requested scale
             f = self.base[str(s)](f)
+            if self.progressive or s == scale:
+                z, y = self.blur[str(s)](f), self.mask[str(s)](f)
+                if self.progressive and logits is not None:
+                    upsample = getattr(self, f"upsample_{s}")
+                    z = z + F.conv2d(logits, upsample.to(logits.dtype))
+                    y = y + mask_logits
+                logits, mask_logits = z, y
             if s == scale:
                 break
-        weights = F.softmax(self.blur[str(scale)](f), dim=1)
-        mask = torch.sigmoid(self.mask[str(scale)](f))
-        return weights, mask
+        return F.softmax(logits, dim=1), torch.sigmoid(mask_logits)
 
     def parameters_for_scale(self, scale: int):
         """The head parameters that take part in ``forward(., scale)``."""
         for s in self.scales:
             yield from self.base[str(s)].parameters()
+            if self.progressive or s == scale:
+                yield from self.blur[str(s)].parameters()
+                yield from self.mask[str(s)].parameters()
             if s == scale:
                 break
-        yield from self.blur[str(scale)].parameters()
-        yield from self.mask[str(scale)].parameters()

@@ -50,9 +50,11 @@ class MotionConfig:
     interpolated with homographies induced by the plane at the sub-frame's median depth."""
     max_samples: int = 64
     """Cap on exposure samples per view (long paths are sampled more coarsely rather than slower)."""
-    render_supersample: int = 1
-    """(trajectory model) supersampling of each re-rendered sub-frame; the warped exposure samples already
-    average many sub-pixel positions along the path, and each sub-frame gets its own sub-pixel offset."""
+    render_supersample: int = 0
+    """(trajectory model) supersampling of each re-rendered sub-frame; 0: the scene's own (scene.json), so the
+    blurred view is the blur of the same anti-aliased image as its sharp twin. A lower value is faster but adds
+    aliasing no blur kernel can explain (measured at 100x75: a per-view kernel then fits the blurred views only
+    to 23.2 dB instead of 35.5 dB)."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.min_blur_px <= self.max_blur_px:
@@ -67,8 +69,8 @@ class MotionConfig:
             raise ValueError(f"motion.roll_fraction must be >= 0, got {self.roll_fraction}")
         if self.sample_spacing_px <= 0 or self.keyframe_spacing_px <= 0:
             raise ValueError("motion.sample_spacing_px and motion.keyframe_spacing_px must be > 0")
-        if self.render_supersample < 1:
-            raise ValueError(f"motion.render_supersample must be >= 1, got {self.render_supersample}")
+        if self.render_supersample < 0:
+            raise ValueError(f"motion.render_supersample must be >= 0 (0: the scene's), got {self.render_supersample}")
         if self.max_samples < 2:
             raise ValueError(f"motion.max_samples must be >= 2, got {self.max_samples}")
 

@@ -127,6 +127,7 @@ def _trajectory_motion(
     if depth is None and cfg.translation_fraction > 0:
         _, depth = render_view(scene, ctx.c2w, ctx.K, ctx.width, ctx.height, 1)
         depth = depth.astype(np.float64)
+    supersample = cfg.render_supersample or ctx.synth_config.supersample
     n_kf = int(np.clip(math.ceil(target / cfg.keyframe_spacing_px), 1, T))
     per = math.ceil(T / n_kf)
     T = n_kf * per
@@ -151,7 +152,7 @@ def _trajectory_motion(
         pose = np.eye(4)
         pose[:3, :3], pose[:3, 3] = Rc[jk].numpy(), tc[jk].numpy()
         rgb, sub_depth = render_view(
-            scene, ctx.c2w @ pose, K_big, ctx.width + 2 * margin, ctx.height + 2 * margin, cfg.render_supersample
+            scene, ctx.c2w @ pose, K_big, ctx.width + 2 * margin, ctx.height + 2 * margin, supersample
         )
         finite = np.isfinite(sub_depth)
         plane = float(np.median(sub_depth[finite])) if finite.any() else 1.0
@@ -165,7 +166,7 @@ def _trajectory_motion(
         out += homography_blur(sub, H, dsize=(ctx.height, ctx.width), padding_mode="border")
     out = out / n_kf
     rec = {"model": "trajectory", "blur_px": _r(target), "max_displacement_px": _r(ext, 4), "samples": T,
-           "keyframes": n_kf, "render_supersample": cfg.render_supersample, "reference": "mid_exposure",
+           "keyframes": n_kf, "render_supersample": supersample, "reference": "mid_exposure",
            "pose": "camera_to_reference", **traj.to_json()}  # fmt: skip
     return out, rec
 

@@ -212,11 +212,10 @@ class GSMSDRModel(SplatfactoModel):
         self.resolution_model: Optional[ResolutionLossModel] = None
         if any(p.needs_blur_field for p in self.profiles):
             use_depth = any(p.needs_depth for p in self.profiles)
+            field_config = self.config.blur_field.for_schedule(self.config.num_downscales)
             with torch.random.fork_rng(devices=[]):
-                self.blur_field = self.config.blur_field.setup(
-                    num_train_views=self.num_train_data, use_depth=use_depth
-                )
-            self.hpko = self.config.blur_field.make_scheduler(
+                self.blur_field = field_config.setup(num_train_views=self.num_train_data, use_depth=use_depth)
+            self.hpko = field_config.make_scheduler(
                 num_downscales=self.config.num_downscales, resolution_schedule=self.config.resolution_schedule
             )
             self.hpko_state = self.hpko.initialize_state()

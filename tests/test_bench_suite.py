@@ -1,0 +1,280 @@
+"""`gsmsdr-bench suite`: suite YAML validation, the method table, the timing recorder (it must not change training),
+and a real two-run suite that is interrupted with Ctrl-C and resumed (finished runs are not redone), with its
+results.csv / results.md / PNG outputs checked. Real nerfstudio training on tiny generated scenes, no mocks."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from gsmsdr_ns.bench.cli import map_quick
+from gsmsdr_ns.bench.suite import (
+    METHODS,
+    RunKey,
+    SuiteConfigError,
+    find_suite_file,
+    finished_record,
+    load_suite,
+    record_path,
+    run_suite,
+)
+
+BIN = Path(sys.executable).parent
+REPO = Path(__file__).resolve().parents[1]
+
+TINY_SUITE = """\
+name: tiny
+scene_defaults: {width: 64, height: 48, num_views: 10, hold: 5, num_points: 400, seed: 0}
+scenes: [motion]
+methods: [plain, full]
+steps: [20]
+eval_every: 10
+schedule: {num_downscales: 0}
+threads: 1
+"""
+
+
+def write_suite(tmp_path: Path, text: str, name: str = "suite.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(text), encoding="utf8")
+    return path
+
+
+# -- suite files -------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["quick", "full", "ablations"])
+def test_shipped_suites_load(name: str) -> None:
+    suite = load_suite(find_suite_file(name))
+    assert suite.name == name
+    assert suite.runs()
+    assert all(m in METHODS for m in suite.methods)
+
+
+BAD_SUITES = [
+    ("unknown top-level key", TINY_SUITE + "stepz: [3]\n", "stepz"),
+    ("unknown method", TINY_SUITE.replace("[plain, full]", "[plain, fulll]"), "methods[1]"),
+    ("unknown variant", TINY_SUITE.replace("[motion]", "[blurry]"), "scenes[0].variant"),
+    ("missing steps", TINY_SUITE.replace("steps: [20]\n", ""), "steps"),
+    ("bad step budget", TINY_SUITE.replace("steps: [20]", "steps: [0]"), "steps[0]"),
+    ("bad scene default", TINY_SUITE.replace("num_points: 400", "pointz: 400"), "scene_defaults.pointz"),
+    ("bad scene override", TINY_SUITE.replace("[motion]", "[{variant: motion, width: -3}]"), "scenes[0].width"),
+    ("duplicate scenes", TINY_SUITE.replace("[motion]", "[motion, motion]"), "scenes"),
+    ("missing user scene", TINY_SUITE.replace("[motion]", "[{path: no/such/scene}]"), "scenes[0].path"),
+    ("variant and path", TINY_SUITE.replace("[motion]", "[{variant: motion, path: x}]"), "scenes[0]"),
+    ("unknown schedule key", TINY_SUITE.replace("{num_downscales: 0}", "{num_downscale: 0}"),
+     "schedule.num_downscale"),  # fmt: skip
+    ("bad eval interval", TINY_SUITE.replace("eval_every: 10", "eval_every: often"), "eval_every"),
+    ("not a mapping", "- just\n- a list\n", "must be a YAML mapping"),
+    ("not YAML", "name: [unclosed\n", "not valid YAML"),
+]
+
+
+@pytest.mark.parametrize("label,text,key", BAD_SUITES, ids=[b[0] for b in BAD_SUITES])
+def test_invalid_suite_names_file_and_key(tmp_path: Path, label: str, text: str, key: str) -> None:
+    path = write_suite(tmp_path, text)
+    with pytest.raises(SuiteConfigError) as info:
+        load_suite(path)
+    message = str(info.value)
+    assert str(path) in message and key in message, message
+
+
+def test_missing_suite_file(tmp_path: Path) -> None:
+    with pytest.raises(SuiteConfigError, match="not found"):
+        load_suite(tmp_path / "nope.yaml")
+    with pytest.raises(SuiteConfigError, match="no suite file"):
+        find_suite_file("no-such-suite")
+
+
+def test_user_scene_without_sharp_twin_skips_the_upper_bound(tmp_path: Path) -> None:
+    (tmp_path / "myscene").mkdir()
+    text = TINY_SUITE.replace("[motion]", "[motion, {path: myscene}]").replace("[plain, full]", "[plain, sharp]")
+    suite = load_suite(write_suite(tmp_path, text))
+    user = suite.scene("myscene")
+    assert user.path == tmp_path / "myscene" and not user.generated
+    assert not user.supports(METHODS["sharp"]) and user.supports(METHODS["plain"])
+    assert suite.scene("motion").supports(METHODS["sharp"])
+
+
+def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
+    assert set(METHODS) == {"plain", "msd-only", "re-only", "full", "-gaka", "-safm", "-mca", "-rgbd",
+                            "gsmsdr-lite", "sharp"}  # fmt: skip
+
+    def model(name: str):
+        return METHODS[name].make_config(tmp_path, tmp_path / "out").pipeline.model
+
+    assert model("plain").degradation == "sharp" and model("sharp").degradation == "sharp"
+    assert METHODS["sharp"].sharp_data and not METHODS["plain"].sharp_data
+    assert model("full").degradation == "auto" and model("full").blur_field.mode == "full"
+    assert model("msd-only").blur_field.mode == "msd_only"
+    assert model("re-only").blur_field.mode == "re_only"
+    for switch in ("gaka", "safm", "mca", "rgbd"):
+        field = model(f"-{switch}").blur_field
+        assert getattr(field, switch) is False
+        assert all(getattr(field, other) for other in ("gaka", "safm", "mca", "rgbd") if other != switch)
+    assert model("gsmsdr-lite").blur_field.size == "lite"
+    assert METHODS["re-only"].modules() == dict(GAKA=True, SAFM=True, MCA=True, RGBD=True, HPKO=False)
+    assert METHODS["msd-only"].modules() == dict(GAKA=False, SAFM=False, MCA=False, RGBD=True, HPKO=True)
+
+
+def test_quick_flag_maps_to_the_quick_suite() -> None:
+    assert map_quick(["--quick"]) == ["suite", "--config", "quick"]
+    assert map_quick(["--quick", "--out", "x"]) == ["suite", "--config", "quick", "--out", "x"]
+    assert map_quick(["suite", "--quick"]) == ["suite", "--config", "quick"]
+    assert map_quick(["raster", "--repeats", "1"]) == ["raster", "--repeats", "1"]
+    with pytest.raises(SystemExit):
+        map_quick(["raster", "--quick"])
+
+
+# -- timing recorder ---------------------------------------------------------------------------------------------
+
+
+def _train_losses(data: Path, steps: int, record: bool, evaluate_at=()) -> tuple:
+    from gsmsdr_ns.bench.accuracy import InProcessRun, Schedule, method_config, shorten_schedules
+    from gsmsdr_ns.bench.suite import evaluate_test_views
+    from gsmsdr_ns.bench.timing import TimingRecorder
+
+    config = method_config("gsmsdr-lite", data, data.parent / "ns")
+    shorten_schedules(config, Schedule(steps, num_downscales=0, refinements=4))
+    run = InProcessRun(config, seed=3)
+    losses = []
+    train_iteration = run.trainer.train_iteration
+
+    def capture(step):
+        out = train_iteration(step)
+        losses.append(float(out[0].detach()))
+        return out
+
+    run.trainer.train_iteration = capture
+    recorder = TimingRecorder().attach(run.pipeline) if record else None
+    try:
+        for step in range(steps):
+            if recorder is not None:
+                with recorder.measure():
+                    run.train(1)
+            else:
+                run.train(1)
+            if step + 1 in evaluate_at:
+                evaluate_test_views(run)
+        final = evaluate_test_views(run)
+    finally:
+        if recorder is not None:
+            recorder.detach()
+        run.close()
+    return losses, final, recorder
+
+
+def test_timing_recorder_and_evaluations_do_not_change_training(tmp_path: Path) -> None:
+    from gsmsdr_ns.bench.accuracy import SceneSpec, ensure_scene
+    from gsmsdr_ns.blur.field import BlurField
+
+    data = ensure_scene(tmp_path, SceneSpec("motion", 48, 36, 8, 0, 4, num_points=300))
+    degrade = BlurField.__dict__["degrade"]
+    plain_losses, plain_final, _ = _train_losses(data, 12, record=False)
+    losses, final, recorder = _train_losses(data, 12, record=True, evaluate_at=(4, 8))
+    assert losses == plain_losses  # bit-identical training
+    assert final["psnr"] == plain_final["psnr"] and final["ssim"] == plain_final["ssim"]
+    assert BlurField.__dict__["degrade"] is degrade  # detach() restored the class
+
+    totals, split = recorder.totals(), recorder.split()
+    for category in ("rasterization", "blur_field", "kernels", "data"):
+        assert totals[category] > 0, (category, totals)
+        assert recorder.calls[category] >= 11, (category, dict(recorder.calls))
+    for category in ("rasterization", "blur_field", "kernels"):
+        assert split["backward"][category] > 0, (category, split)
+    assert recorder.calls["densification"] == 24  # pre- and post-backward hook every step
+    assert sum(totals.values()) == pytest.approx(recorder.wall)
+    assert totals["other"] >= 0
+
+
+# -- a real suite: interrupted, resumed, outputs -----------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def interrupted_suite(tmp_path_factory: pytest.TempPathFactory):
+    """Run the tiny suite (2 runs) with the CLI, Ctrl-C it after the first run's record appears, then rerun it."""
+    work = tmp_path_factory.mktemp("suite")
+    config = write_suite(work, TINY_SUITE, "tiny.yaml")
+    out = work / "out"
+    first = out / "runs" / "motion__plain__20__s0.json"
+    second = out / "runs" / "motion__full__20__s0.json"
+    env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1", OMP_WAIT_POLICY="PASSIVE", COLUMNS="200")
+    args = [str(BIN / "gsmsdr-bench"), "suite", "--config", str(config), "--out", str(out)]
+    proc = subprocess.Popen(args, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.monotonic() + 120
+    while not first.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    interrupted = proc.poll() is None
+    proc.send_signal(signal.SIGINT)
+    log1, _ = proc.communicate(timeout=120)
+    assert first.exists(), log1[-4000:]
+    assert interrupted and proc.returncode == 130 and not second.exists(), log1[-4000:]
+    first_mtime = first.stat().st_mtime_ns
+
+    proc2 = subprocess.run(args, cwd=work, env=env, capture_output=True, text=True, timeout=300)
+    log2 = proc2.stdout + proc2.stderr
+    assert proc2.returncode == 0, log2[-4000:]
+    return dict(config=config, out=out, first=first, second=second, first_mtime=first_mtime, log1=log1, log2=log2)
+
+
+def test_interrupted_suite_resumes_without_redoing_finished_runs(interrupted_suite) -> None:
+    s = interrupted_suite
+    assert "interrupted (" in s["log1"] and "1 finished runs are kept" in s["log1"], s["log1"][-3000:]
+    assert "1 already finished, 1 to train" in s["log2"], s["log2"][-3000:]
+    assert "1 runs trained, 1 reused, 0 failed" in s["log2"], s["log2"][-3000:]
+    assert s["first"].stat().st_mtime_ns == s["first_mtime"]  # the finished run was not redone
+    assert s["second"].exists()
+
+    # A third pass trains nothing; a changed setting invalidates the records (they would be rerun).
+    suite = load_suite(s["config"])
+    outcome = run_suite(suite, s["out"], command="gsmsdr-bench suite --config tiny.yaml", progress=False, plots=False)
+    assert outcome.trained == [] and len(outcome.reused) == 2 and not outcome.failed
+    assert s["first"].stat().st_mtime_ns == s["first_mtime"]
+    key = RunKey("motion", "plain", 20, 0)
+    assert finished_record(suite, s["out"], key) is not None
+    suite.eval_every = 5
+    assert finished_record(suite, s["out"], key) is None
+    assert record_path(s["out"], key) == s["first"]
+
+
+def test_suite_outputs_parse(interrupted_suite) -> None:
+    from PIL import Image
+
+    out = interrupted_suite["out"]
+    with open(out / "results.csv", newline="", encoding="utf8") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["method"], r["steps"]) for r in rows] == [("plain", "20"), ("full", "20")]
+    for r in rows:
+        for column in ("psnr", "ssim", "train_seconds", "step_ms", "t_rasterization", "t_blur_field", "t_kernels",
+                       "t_densification", "t_data", "t_other", "peak_rss_mb", "num_gaussians"):  # fmt: skip
+            assert float(r[column]) >= 0, (column, r)
+        assert 5 < float(r["psnr"]) < 60 and 0 < float(r["ssim"]) <= 1
+        parts = sum(float(r[f"t_{c}"]) for c in ("rasterization", "blur_field", "kernels", "densification", "data",
+                                                 "other"))  # fmt: skip
+        assert parts == pytest.approx(float(r["train_seconds"]), rel=1e-3, abs=0.01)
+    full = next(r for r in rows if r["method"] == "full")
+    plain = next(r for r in rows if r["method"] == "plain")
+    assert float(full["t_blur_field"]) > 0 and float(full["t_kernels"]) > 0
+    assert float(plain["t_blur_field"]) == 0
+
+    md = (out / "results.md").read_text(encoding="utf8")
+    assert md.startswith("# Benchmark suite `tiny`")
+    for text in ("- machine:", "- command: `gsmsdr-bench suite", "### motion", "| method | PSNR | SSIM | LPIPS",
+                 "| GS-MSDR (full) |", "## Time breakdown", "## Gaps", "PSNR: sharp - method"):  # fmt: skip
+        assert text in md, text
+    table = [line for line in md.splitlines() if line.startswith("| plain (3DGS) |")][0]
+    assert f"{float(plain['psnr']):.2f}" in table
+
+    for png in ("psnr_vs_time_motion.png", "time_breakdown.png"):
+        with Image.open(out / png) as image:
+            image.verify()
+        with Image.open(out / png) as image:
+            assert image.size[0] > 200 and image.size[1] > 100
