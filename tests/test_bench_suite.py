@@ -42,6 +42,12 @@ threads: 1
 """
 
 
+RESUME_STEPS = 120
+RESUME_SUITE = TINY_SUITE.replace("steps: [20]", f"steps: [{RESUME_STEPS}]").replace("eval_every: 10", "eval_every: 40")
+"""The interrupted suite: its second run (the blur field, ~10 s) is long enough that the Ctrl-C sent when the first
+run's record appears lands inside it even when this process is descheduled for seconds on a loaded machine."""
+
+
 def write_suite(tmp_path: Path, text: str, name: str = "suite.yaml") -> Path:
     path = tmp_path / name
     path.write_text(textwrap.dedent(text), encoding="utf8")
@@ -51,7 +57,7 @@ def write_suite(tmp_path: Path, text: str, name: str = "suite.yaml") -> Path:
 # -- suite files -------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["quick", "full", "ablations"])
+@pytest.mark.parametrize("name", ["quick", "full", "ablations", "ablations-quick", "accuracy"])
 def test_shipped_suites_load(name: str) -> None:
     suite = load_suite(find_suite_file(name))
     assert suite.name == name
@@ -202,10 +208,10 @@ def test_timing_recorder_and_evaluations_do_not_change_training(tmp_path: Path) 
 def interrupted_suite(tmp_path_factory: pytest.TempPathFactory):
     """Run the tiny suite (2 runs) with the CLI, Ctrl-C it after the first run's record appears, then rerun it."""
     work = tmp_path_factory.mktemp("suite")
-    config = write_suite(work, TINY_SUITE, "tiny.yaml")
+    config = write_suite(work, RESUME_SUITE, "tiny.yaml")
     out = work / "out"
-    first = out / "runs" / "motion__plain__20__s0.json"
-    second = out / "runs" / "motion__full__20__s0.json"
+    first = out / "runs" / f"motion__plain__{RESUME_STEPS}__s0.json"
+    second = out / "runs" / f"motion__full__{RESUME_STEPS}__s0.json"
     env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1", OMP_WAIT_POLICY="PASSIVE", COLUMNS="200")
     args = [str(BIN / "gsmsdr-bench"), "suite", "--config", str(config), "--out", str(out)]
     proc = subprocess.Popen(args, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -238,7 +244,7 @@ def test_interrupted_suite_resumes_without_redoing_finished_runs(interrupted_sui
     outcome = run_suite(suite, s["out"], command="gsmsdr-bench suite --config tiny.yaml", progress=False, plots=False)
     assert outcome.trained == [] and len(outcome.reused) == 2 and not outcome.failed
     assert s["first"].stat().st_mtime_ns == s["first_mtime"]
-    key = RunKey("motion", "plain", 20, 0)
+    key = RunKey("motion", "plain", RESUME_STEPS, 0)
     assert finished_record(suite, s["out"], key) is not None
     suite.eval_every = 5
     assert finished_record(suite, s["out"], key) is None
@@ -251,7 +257,7 @@ def test_suite_outputs_parse(interrupted_suite) -> None:
     out = interrupted_suite["out"]
     with open(out / "results.csv", newline="", encoding="utf8") as f:
         rows = list(csv.DictReader(f))
-    assert [(r["method"], r["steps"]) for r in rows] == [("plain", "20"), ("full", "20")]
+    assert [(r["method"], r["steps"]) for r in rows] == [("plain", str(RESUME_STEPS)), ("full", str(RESUME_STEPS))]
     for r in rows:
         for column in ("psnr", "ssim", "train_seconds", "step_ms", "t_rasterization", "t_blur_field", "t_kernels",
                        "t_densification", "t_data", "t_other", "peak_rss_mb", "num_gaussians"):  # fmt: skip
