@@ -214,7 +214,10 @@ def interrupted_suite(tmp_path_factory: pytest.TempPathFactory):
     second = out / "runs" / f"motion__full__{RESUME_STEPS}__s0.json"
     env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1", OMP_WAIT_POLICY="PASSIVE", COLUMNS="200")
     args = [str(BIN / "gsmsdr-bench"), "suite", "--config", str(config), "--out", str(out)]
-    proc = subprocess.Popen(args, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    # A shell that starts jobs in the background (nohup, `cmd &` in CI scripts) makes them ignore SIGINT, and Python
+    # then installs no KeyboardInterrupt handler: give the suite the default disposition a terminal's Ctrl-C meets.
+    proc = subprocess.Popen(args, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
     deadline = time.monotonic() + 120
     while not first.exists() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
