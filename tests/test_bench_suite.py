@@ -21,6 +21,7 @@ from gsmsdr_ns.bench.suite import (
     RunKey,
     SuiteConfigError,
     find_suite_file,
+    fingerprint,
     finished_record,
     load_suite,
     record_path,
@@ -111,8 +112,8 @@ def test_user_scene_without_sharp_twin_skips_the_upper_bound(tmp_path: Path) -> 
 
 
 def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
-    assert set(METHODS) == {"plain", "msd-only", "re-only", "full", "-gaka", "-safm", "-mca", "-rgbd",
-                            "gsmsdr-lite", "sharp"}  # fmt: skip
+    assert set(METHODS) == {"plain", "msd-only", "re-only", "full", "-view", "view-only", "-gaka", "-safm", "-mca",
+                            "-rgbd", "gsmsdr-lite", "sharp"}  # fmt: skip
 
     def model(name: str):
         return METHODS[name].make_config(tmp_path, tmp_path / "out").pipeline.model
@@ -127,8 +128,29 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
         assert getattr(field, switch) is False
         assert all(getattr(field, other) for other in ("gaka", "safm", "mca", "rgbd") if other != switch)
     assert model("gsmsdr-lite").blur_field.size == "lite"
+    assert model("full").blur_field.view_kernels and model("full").blur_field.pixel_kernels
+    assert not model("-view").blur_field.view_kernels and not model("view-only").blur_field.pixel_kernels
     assert METHODS["re-only"].modules() == dict(GAKA=True, SAFM=True, MCA=True, RGBD=True, HPKO=False)
     assert METHODS["msd-only"].modules() == dict(GAKA=False, SAFM=False, MCA=False, RGBD=True, HPKO=True)
+
+
+def test_fingerprint_follows_the_resolved_preset(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A record made before a preset default changed is not reused: the fingerprint covers the resolved settings."""
+    import gsmsdr_ns.plugin.method_config as method_config
+
+    suite = load_suite(write_suite(tmp_path, TINY_SUITE))
+    key = RunKey("motion", "full", 20, 0)
+    before = fingerprint(suite, key)
+    assert fingerprint(suite, key) == before
+    original = method_config.gsmsdr_optimizers
+
+    def changed(*args, **kwargs):
+        optimizers = original(*args, **kwargs)
+        optimizers["blur_field"]["optimizer"].lr *= 2
+        return optimizers
+
+    monkeypatch.setattr(method_config, "gsmsdr_optimizers", changed)
+    assert fingerprint(suite, key) != before
 
 
 def test_quick_flag_maps_to_the_quick_suite() -> None:
@@ -287,3 +309,21 @@ def test_suite_outputs_parse(interrupted_suite) -> None:
             image.verify()
         with Image.open(out / png) as image:
             assert image.size[0] > 200 and image.size[1] > 100
+
+
+def test_two_processes_generating_the_same_scene_both_get_it(tmp_path: Path) -> None:
+    """Suites run in parallel (one per core) may need the same generated scene at the same time."""
+    script = (
+        "import sys; from pathlib import Path; from gsmsdr_ns.bench.accuracy import SceneSpec, ensure_scene; "
+        "print(ensure_scene(Path(sys.argv[1]), SceneSpec('motion', width=40, height=30, num_views=6, hold=3, "
+        "num_points=200)))"
+    )
+    procs = [
+        subprocess.Popen([sys.executable, "-c", script, str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        for _ in range(2)
+    ]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], [err.decode()[-2000:] for _, err in outs]
+    scenes = sorted((tmp_path / "scenes").iterdir())
+    assert [s.name for s in scenes] == ["motion-40x30-v6-h3-s0-g2"]  # no partial copies left behind
+    assert (scenes[0] / "degradation.json").is_file() and len(list((scenes[0] / "images").iterdir())) == 6

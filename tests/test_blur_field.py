@@ -498,3 +498,43 @@ def test_report_parameter_counts_and_timing_150x100():
     rows = [f"{n:9s} params {num_params(f):7d}  fwd+bwd 150x100 K=17, 1 thread: {best[n] * 1e3:6.0f} ms" for n, f in
             fields.items()]  # fmt: skip
     print("\n" + "\n".join(rows))
+
+
+# ------------------------------------------------------------------------------------------------ per-view kernels
+
+
+def test_view_kernels_give_each_view_its_own_kernel():
+    """A per-view table shifts every pixel's kernel of that view (and only that view's); without the per-pixel
+    heads the kernel is the same at every pixel of a view."""
+    f = field(view_kernels=True, pixel_kernels=False)
+    render, depth, _ = inputs(B=2, H=16, W=24)
+    view_ids = torch.tensor([1, 3])
+    with torch.no_grad():
+        f.heads.view_logits["3"][3] = kernel_prior_logits(5, sigma=1.5) - kernel_prior_logits(5, sigma=0.5)
+    weights, _ = f(render, depth, view_ids, 3)
+    radius = kernel_rms_radius(weights.detach())
+    assert float(radius[0].max()) < 1.0 < float(radius[1].min())
+    torch.testing.assert_close(weights[:, :, :1, :1].expand_as(weights), weights)  # spatially uniform per view
+    # with the per-pixel heads the view's table is added to their (spatially varying) logits
+    g = field(view_kernels=True)
+    weights, _ = g(render, depth, view_ids, 3)
+    assert float((weights[:, :, 0, 0] - weights[:, :, 5, 7]).abs().max()) > 0
+
+
+def test_view_kernels_train_only_the_drawn_views_in_their_own_group():
+    f = field(view_kernels=True)
+    groups = f.get_param_groups({})
+    assert set(groups) == {"blur_field", "blur_view_kernels"}
+    assert len(groups["blur_field"]) + len(groups["blur_view_kernels"]) == len(list(f.parameters()))
+    for scale in f.scales:
+        d = 2 ** (scale - 1)
+        render, depth, _ = inputs(B=1, H=32 // d, W=48 // d)
+        f.zero_grad(set_to_none=True)
+        weights, mask = f(render, depth, torch.tensor([2]), scale)
+        (f.degrade(render, weights, mask) - 0.5).abs().mean().backward()
+        grad = f.heads.view_logits[str(scale)].grad
+        assert grad[2].abs().sum() > 0 and grad[[0, 1, 3, 4]].abs().sum() == 0
+    with pytest.raises(ValueError, match="pixel_kernels, view_kernels"):
+        BlurFieldConfig(pixel_kernels=False)
+    with pytest.raises(ValueError, match="view_ids"):
+        f.heads(torch.zeros(1, f.mcf.out_channels, 4, 4), 1)

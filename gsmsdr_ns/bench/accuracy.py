@@ -25,7 +25,10 @@ import csv
 import dataclasses
 import gc
 import math
+import os
 import random
+import shutil
+import tempfile
 import time
 import warnings
 from dataclasses import dataclass
@@ -118,7 +121,11 @@ def ensure_scene(bench_dir: Path, spec: SceneSpec, log: Optional[Callable[[str],
     from gsmsdr_ns.synth.config import SynthSceneConfig
 
     out = Path(bench_dir) / "scenes" / spec.name
-    if (out / "degradation.json").is_file() and (out / "images_test").is_dir():
+
+    def complete(folder: Path) -> bool:
+        return (folder / "degradation.json").is_file() and (folder / "images_test").is_dir()
+
+    if complete(out):
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
     scene = SynthSceneConfig(
@@ -126,7 +133,21 @@ def ensure_scene(bench_dir: Path, spec: SceneSpec, log: Optional[Callable[[str],
     )
     if log is not None:
         log(f"accuracy: generating {out}")
-    return generate_variant(out, scene, spec.variant, hold=spec.hold, overwrite=out.exists())
+    # generated beside its final place, then renamed: a suite running in parallel never sees half a scene, and two
+    # processes generating the same scene both end up with one complete copy
+    partial = Path(tempfile.mkdtemp(prefix=f".{spec.name}.", dir=out.parent))
+    try:
+        generate_variant(partial, scene, spec.variant, hold=spec.hold, overwrite=True)
+        if out.exists() and not complete(out):
+            shutil.rmtree(out)  # left by an interrupted run of an older version
+        try:
+            os.rename(partial, out)
+        except OSError:
+            if not complete(out):
+                raise
+    finally:
+        shutil.rmtree(partial, ignore_errors=True)
+    return out
 
 
 # -- configs -----------------------------------------------------------------------------------------------------

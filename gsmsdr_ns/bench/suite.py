@@ -100,7 +100,11 @@ METHODS: Dict[str, MethodSpec] = {
         _method("msd-only", "MSD-only", "gsmsdr", "HPKO heads on BAGS' plain CNN (no GAKA/SAFM/MCA)", mode="msd_only"),
         _method("re-only", "RE-only", "gsmsdr", "MAAN features, one full-resolution kernel scale (no HPKO)",
                 mode="re_only"),  # fmt: skip
-        _method("full", "GS-MSDR (full)", "gsmsdr", "the gsmsdr preset: MAAN + HPKO"),
+        _method("full", "GS-MSDR (full)", "gsmsdr", "the gsmsdr preset: MAAN + HPKO, with per-view kernels"),
+        _method("-view", "-view kernels", "gsmsdr", "full without per-view kernels (the paper's blur field)",
+                view_kernels=False),  # fmt: skip
+        _method("view-only", "view kernels only", "gsmsdr", "full with per-view kernels but no per-pixel kernel heads",
+                pixel_kernels=False),  # fmt: skip
         _method("-gaka", "-GAKA", "gsmsdr", "full without Global-Aware Kernel Attention", gaka=False),
         _method("-safm", "-SAFM", "gsmsdr", "full without the Spatial Adaptive Fusion Module", safm=False),
         _method("-mca", "-MCA", "gsmsdr", "full without the Multi-modal Context Adapter", mca=False),
@@ -525,6 +529,13 @@ def evaluate_test_views(run, lpips=None) -> Dict[str, float]:
 # -- one run -----------------------------------------------------------------------------------------------------
 
 
+def preset_fingerprint(method: MethodSpec) -> str:
+    """The resolved model and optimizer settings of ``method`` (its preset with its changes applied), so a record
+    made before a preset default changed is rerun. Paths are left out."""
+    config = method.make_config(Path("data"), Path("outputs"))
+    return repr(config.pipeline.model) + repr(sorted(config.optimizers.items()))
+
+
 def fingerprint(suite: Suite, key: RunKey) -> str:
     """What a record's numbers depend on; a record whose fingerprint differs is rerun."""
     method = METHODS[key.method]
@@ -532,6 +543,7 @@ def fingerprint(suite: Suite, key: RunKey) -> str:
         "version": RECORD_VERSION,
         "scene": suite.scene(key.scene).fingerprint(),
         "method": {"base": method.base, "blur_field": method.blur_field, "sharp_data": method.sharp_data},
+        "preset": preset_fingerprint(method),
         "steps": key.steps,
         "seed": key.seed,
         "schedule": dataclasses.asdict(suite.schedule_for(key.steps)),

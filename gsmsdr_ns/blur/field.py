@@ -101,6 +101,14 @@ class BlurFieldConfig:
     simulates almost no blur, instead of a near-uniform kernel that blurs everything."""
     mask_init: float = 0.5
     """Initial blending mask m (the coarsest head's bias), in (0, 1)."""
+    view_kernels: bool = True
+    """Add a learnable per-view kernel (one K_s x K_s logit table per training view and scale) to the predicted
+    per-pixel kernels: camera shake blurs a whole image along one path, which a per-view kernel captures with few
+    parameters; the heads model how the blur varies across the image. Trained in the ``blur_view_kernels``
+    optimizer group."""
+    pixel_kernels: bool = True
+    """Per-pixel kernel heads (M_blur^s). False: the kernel is the prior plus the per-view kernel only (needs
+    ``view_kernels``); the mask heads stay."""
     mca_pool_size: int = 8
     """Output grid (P x P) of MCA's adaptive average pooling for the spatial context weights."""
     msd_hidden: int = 64
@@ -126,6 +134,8 @@ class BlurFieldConfig:
         dims = self.dims
         if dims.feature_dim < 2 or dims.mid_channels < 1 or dims.view_dim < 0 or dims.num_fans < 0:
             raise ValueError(f"invalid blur field widths {dims}")
+        if not (self.view_kernels or self.pixel_kernels):
+            raise ValueError("a blur field needs pixel_kernels, view_kernels or both")
         if not self.kernel_prior_sigma > 0:
             raise ValueError(f"kernel_prior_sigma must be > 0, got {self.kernel_prior_sigma}")
         if dims.pos_channels < 0 or dims.pos_channels % 4:
@@ -207,6 +217,8 @@ class BlurField(nn.Module):
             progressive=config.progressive,
             prior_sigma=config.kernel_prior_sigma,
             mask_init=config.mask_init,
+            num_views=num_train_views if config.view_kernels else 0,
+            pixel_kernels=config.pixel_kernels,
         )
 
     @property
@@ -237,7 +249,7 @@ class BlurField(nn.Module):
             kernel_weights: [B, K_s * K_s, H, W], softmax over dim 1 (sums to 1), row-major window index.
             mask: [B, 1, H, W] in (0, 1).
         """
-        return self.heads(self.features(render, depth, view_ids), scale)
+        return self.heads(self.features(render, depth, view_ids), scale, view_ids)
 
     @staticmethod
     def degrade(render: Tensor, kernel_weights: Tensor, mask: Tensor) -> Tensor:
@@ -268,8 +280,14 @@ class BlurField(nn.Module):
         return loss_dict
 
     def get_param_groups(self, param_groups: Dict[str, List[nn.Parameter]]) -> Dict[str, List[nn.Parameter]]:
-        """Add the ``blur_field`` group (BAGS trains it with Adam, lr 5e-4 constant)."""
-        param_groups["blur_field"] = list(self.parameters())
+        """Add the ``blur_field`` group (BAGS trains it with Adam, lr 5e-4 constant) and, with per-view kernels,
+        ``blur_view_kernels`` (each view's table gets a gradient only when that view is drawn: it needs a higher
+        learning rate)."""
+        view = list(self.heads.view_logits.parameters())
+        view_ids = {id(p) for p in view}
+        param_groups["blur_field"] = [p for p in self.parameters() if id(p) not in view_ids]
+        if view:
+            param_groups["blur_view_kernels"] = view
         return param_groups
 
     def parameters_for_scale(self, scale: int) -> List[nn.Parameter]:

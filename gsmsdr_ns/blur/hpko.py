@@ -219,7 +219,14 @@ class HPKOHeads(nn.Module):
     centred Gaussian (``prior_sigma`` pixels, :func:`kernel_prior_logits`): the simulated blur starts close to the
     render, so an untrained field does not blur everything and teach the mask to switch itself off.
 
-    ``forward(features [B, C, H, W], scale) -> (kernel_weights [B, K_s^2, H, W], mask [B, 1, H, W])``.
+    With ``num_views > 0`` each scale also holds a per-view logit table ``v^s`` [num_views, K_s^2] (zeros at
+    start) added at every pixel of that view: ``z^s += v^s[view]``. Camera shake blurs a whole photo along one
+    path; a per-view kernel learns that path from every pixel's gradient at once, and the per-pixel heads only
+    model how the blur varies across the image. ``pixel_kernels=False`` keeps the kernel heads' bias (the prior)
+    but drops their per-pixel part.
+
+    ``forward(features [B, C, H, W], scale, view_ids [B] | None) -> (kernel_weights [B, K_s^2, H, W],
+    mask [B, 1, H, W])`` (``view_ids`` required with per-view tables).
     Kernel index k = i * K + j is row i, column j of the K x K window (row-major, like ``F.unfold``).
     """
 
@@ -233,6 +240,8 @@ class HPKOHeads(nn.Module):
         prior_sigma: float = 0.5,
         mask_init: float = 0.5,
         head_init_scale: float = 0.1,
+        num_views: int = 0,
+        pixel_kernels: bool = True,
     ):
         super().__init__()
         ks = check_kernel_sizes(kernel_sizes)
@@ -241,6 +250,12 @@ class HPKOHeads(nn.Module):
         self.scales = tuple(scales)  # coarse to fine
         self.kernel_sizes = {s: ks[len(ks) - s] for s in self.scales}
         self.progressive = bool(progressive)
+        self.pixel_kernels = bool(pixel_kernels)
+        if num_views < 0 or (num_views == 0 and not pixel_kernels):
+            raise ValueError("HPKOHeads needs per-pixel kernel heads, per-view kernels (num_views > 0), or both")
+        self.num_views = int(num_views)
+        # per-view kernel logits (one K_s x K_s kernel per training view and scale), added to the heads' logits
+        self.view_logits = nn.ParameterDict()
         self.base = nn.ModuleDict()
         self.blur = nn.ModuleDict()
         self.mask = nn.ModuleDict()
@@ -261,21 +276,29 @@ class HPKOHeads(nn.Module):
                 else:
                     self.blur[str(s)].bias.zero_()
                     self.mask[str(s)].bias.zero_()
+            if self.num_views:
+                self.view_logits[str(s)] = nn.Parameter(torch.zeros(self.num_views, k * k))
             if previous is not None and self.progressive:
                 matrix = kernel_upsample_matrix(self.kernel_sizes[previous], k)
                 self.register_buffer(f"upsample_{s}", matrix[:, :, None, None], persistent=False)
             previous = s
             c = mid_channels
 
-    def forward(self, features: Tensor, scale: int) -> Tuple[Tensor, Tensor]:
+    def forward(self, features: Tensor, scale: int, view_ids: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
         if scale not in self.scales:
             raise ValueError(f"scale {scale} is not one of this field's scales {self.scales}")
+        if self.num_views and (view_ids is None or view_ids.shape != features.shape[:1]):
+            raise ValueError(f"per-view kernels need view_ids of shape [{features.shape[0]}]")
         f = features
         logits = mask_logits = None
         for s in self.scales:  # coarse to fine, stop at the requested scale
             f = self.base[str(s)](f)
             if self.progressive or s == scale:
                 z, y = self.blur[str(s)](f), self.mask[str(s)](f)
+                if not self.pixel_kernels:
+                    z = self.blur[str(s)].bias[None, :, None, None].expand_as(z)
+                if self.num_views:
+                    z = z + self.view_logits[str(s)][view_ids.long()][:, :, None, None].to(z.dtype)
                 if self.progressive and logits is not None:
                     upsample = getattr(self, f"upsample_{s}")
                     z = z + F.conv2d(logits, upsample.to(logits.dtype))
@@ -292,5 +315,7 @@ class HPKOHeads(nn.Module):
             if self.progressive or s == scale:
                 yield from self.blur[str(s)].parameters()
                 yield from self.mask[str(s)].parameters()
+                if self.num_views:
+                    yield self.view_logits[str(s)]
             if s == scale:
                 break

@@ -63,6 +63,7 @@ def gsmsdr_optimizers(max_steps: int = MAX_STEPS) -> dict:
         "camera_opt": {"optimizer": _adam(1e-4), "scheduler": _warmup_decay(5e-7, max_steps)},
         "bilateral_grid": {"optimizer": _adam(2e-3), "scheduler": _warmup_decay(1e-4, max_steps)},
         "blur_field": {"optimizer": _adam(5e-4, eps=1e-8), "scheduler": None},
+        "blur_view_kernels": {"optimizer": _adam(3e-2, eps=1e-8), "scheduler": None},
         "resolution_model": {"optimizer": _adam(1e-4, eps=1e-8), "scheduler": None},
     }
 
