@@ -1,31 +1,34 @@
-"""Does the blur field pay off? A generated motion-blurred scene trained briefly with ``gsmsdr`` and with plain
-Gaussians (the same preset with ``degradation sharp``: a splatfacto step on the blurry images), through nerfstudio's
-trainer (``gsmsdr_ns.bench.accuracy``: same scene, cameras, seed, step budget and schedule for both).
+"""Does the blur field pay off? A generated motion-blurred scene trained briefly with ``gsmsdr-lite`` (gsmsdr's CPU
+preset) and with plain Gaussians (the same preset with ``degradation sharp``: a splatfacto step on the blurry images),
+through nerfstudio's trainer (``gsmsdr_ns.bench.accuracy``: same scene, cameras, seed, step budget and schedule for
+both).
 
-Scene: the ``motion-strong`` variant (16-32 px of shake at 600 px width: 3.2-6.4 px at the 120 px used here, where
-blur is large enough to matter), 24 views, every 6th a sharp held-out test view, 600 steps.
+Scene: the ``motion-strong`` variant (16-32 px of shake at 600 px width: 4.3-8.5 px at the 160 px used here), 24 views,
+every 6th a sharp held-out test view (4 test views, 20 blurry training views), 1000 steps (50 draws of each training
+view: the per-view kernels learn from those draws).
 
-Measured on the 2-core CPU machine (2026-11-21, this configuration, seed 0, ``pytest tests/test_accuracy.py -s``):
+Measured on the 2-core CPU machine (2026-11-21, git c43535f, this configuration, seed 0, one thread):
 
-============  ====================  ==================
+============  =====================  ==================
 method        blurry train-view fit  sharp test views
-============  ====================  ==================
-plain         28.78 dB               22.19 dB / 0.621
-gsmsdr        29.13 dB               22.01 dB / 0.627
-sharp bound   -                      22.81 dB / 0.698
-============  ====================  ==================
+============  =====================  ==================
+plain         30.73 dB               22.09 dB / 0.631
+gsmsdr-lite   31.31 dB               22.53 dB / 0.680
+============  =====================  ==================
+
+(The sharp render of the 20 training poses against their sharp twins: 22.99 dB plain, 23.61 dB gsmsdr-lite.)
 
 What this test asserts, and the margins:
 
-* the simulated degradation (render -> blur field) fits the blurry training views better than plain Gaussians do:
-  by more than 0.1 dB (measured +0.35 dB; +0.31 dB in a second run: the blur field's multi-threaded
-  reductions are not bit-reproducible);
-* the sharp render is not damaged by the field: test PSNR at least plain's minus 0.75 dB (measured -0.18 dB and -0.23 dB). A
-  field that explains the images without keeping the render honest (mask pinned near 1, no regulariser) measured
-  -2.6 dB at 160x120 and fails this. At this budget the blur field does NOT yet render measurably sharper test views
-  than plain Gaussians (the gap to the sharp bound is only 0.6 dB); the accuracy benchmark
-  (``gsmsdr-bench suite --config accuracy``) reports the gains at larger budgets and the README says where the
-  issue's targets are missed.
+* the simulated degradation (render -> blur field) fits the blurry training views better than plain Gaussians do,
+  by more than 0.2 dB (measured +0.58 dB);
+* the sharp test views are rendered sharper: PSNR above plain's by more than 0.2 dB (measured +0.44 dB) and SSIM by
+  more than 0.02 (measured +0.049). Run-to-run differences of the same configuration were below 0.05 dB (the blur
+  field's multi-threaded reductions are not bit-reproducible); the margins leave the rest for machine and library
+  differences. At 120x90 / 600 steps (30 draws per training view) the field did not beat plain on test PSNR
+  (full preset: -0.18 dB without per-view kernels, -0.24 dB with them): the gain needs enough draws of each view.
+
+The full ``gsmsdr`` preset is measured at larger budgets by ``gsmsdr-bench suite --config accuracy`` (README).
 """
 
 from __future__ import annotations
@@ -36,33 +39,37 @@ import pytest
 
 from gsmsdr_ns.bench.accuracy import RunResult, SceneSpec, Schedule, run_method
 
-SPEC = SceneSpec("motion-strong", width=120, height=90, num_views=24, hold=6)
-SCHEDULE = Schedule(600, num_downscales=1)
-FIT_MARGIN_DB = 0.1
-TEST_VIEW_TOLERANCE_DB = 0.75
+SPEC = SceneSpec("motion-strong", width=160, height=120, num_views=24, hold=6)
+SCHEDULE = Schedule(1000, num_downscales=1)
+METHOD = "gsmsdr-lite"
+FIT_MARGIN_DB = 0.2
+TEST_PSNR_MARGIN_DB = 0.2
+TEST_SSIM_MARGIN = 0.02
 
 
 @pytest.fixture(scope="module")
 def results(tmp_path_factory: pytest.TempPathFactory) -> dict:
     bench_dir: Path = tmp_path_factory.mktemp("accuracy")
     out: dict = {}
-    for method in ("plain", "gsmsdr"):
+    for method in ("plain", METHOD):
         out[method] = run_method(method, SPEC, SCHEDULE, bench_dir, seed=0, train_fit=True, log=print)
     return out
 
 
 def test_gsmsdr_fits_the_blurry_training_views_better_than_plain(results):
     plain: RunResult = results["plain"]
-    gsmsdr: RunResult = results["gsmsdr"]
+    gsmsdr: RunResult = results[METHOD]
     assert gsmsdr.train_psnr > plain.train_psnr + FIT_MARGIN_DB, (
-        f"blurry train-view fit: gsmsdr {gsmsdr.train_psnr:.2f} dB vs plain {plain.train_psnr:.2f} dB"
+        f"blurry train-view fit: {METHOD} {gsmsdr.train_psnr:.2f} dB vs plain {plain.train_psnr:.2f} dB"
     )
 
 
-def test_gsmsdr_keeps_the_sharp_render_honest(results):
+def test_gsmsdr_renders_sharper_test_views_than_plain(results):
     plain: RunResult = results["plain"]
-    gsmsdr: RunResult = results["gsmsdr"]
-    assert gsmsdr.psnr > plain.psnr - TEST_VIEW_TOLERANCE_DB, (
-        f"sharp test views: gsmsdr {gsmsdr.psnr:.2f} dB vs plain {plain.psnr:.2f} dB"
+    gsmsdr: RunResult = results[METHOD]
+    assert gsmsdr.psnr > plain.psnr + TEST_PSNR_MARGIN_DB, (
+        f"sharp test views: {METHOD} {gsmsdr.psnr:.2f} dB vs plain {plain.psnr:.2f} dB"
     )
-    assert gsmsdr.ssim > plain.ssim - 0.03, f"test SSIM: gsmsdr {gsmsdr.ssim:.4f} vs plain {plain.ssim:.4f}"
+    assert gsmsdr.ssim > plain.ssim + TEST_SSIM_MARGIN, (
+        f"test SSIM: {METHOD} {gsmsdr.ssim:.4f} vs plain {plain.ssim:.4f}"
+    )

@@ -1,6 +1,7 @@
-"""`gsmsdr-bench accuracy`: does the blur field pay off? Test-view PSNR / SSIM of gsmsdr against plain Gaussians.
+"""Training and evaluating one method on one generated scene, the same way for every method (used by the
+``gsmsdr-bench suite`` runs and by tests/test_accuracy.py).
 
-For each generated suite (``generate_variant``: motion, defocus, mixres; Deblur-NeRF layout, sharp test views with
+On a generated scene (``generate_variant``: motion, defocus, mixres, ...; Deblur-NeRF layout, sharp test views with
 their ``images_test/`` twins) the same step budget trains:
 
 * ``plain``: the ``gsmsdr`` preset with ``degradation sharp``, i.e. plain splatfacto Gaussians fitted straight to the
@@ -21,7 +22,6 @@ simulated degradation for gsmsdr, the render for plain) against the degraded tra
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import gc
 import math
@@ -33,19 +33,13 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Callable, Dict, Optional
 
 import numpy as np
 import torch
 
-SCENES = ("motion", "defocus", "mixres")
-"""Degraded suites (``generate_variant`` variants) the benchmark runs by default."""
 METHODS = ("plain", "gsmsdr", "gsmsdr-lite", "sharp")
 """plain (degradation sharp on the degraded images), gsmsdr, gsmsdr-lite, sharp (plain on the sharp variant)."""
-GAP_TARGETS = {"motion": 2.0, "defocus": 1.0, "mixres": 1.0, "motion-strong": 2.0}
-"""Targets of the issue: test PSNR of gsmsdr minus plain, per suite (dB, at least)."""
-UPPER_BOUND_TARGET = 1.5
-"""Target of the issue: test PSNR of the sharp upper bound minus gsmsdr (dB, at most)."""
 
 
 SCENE_DATA_VERSION = 2
@@ -333,97 +327,3 @@ def run_method(
             f"({result.step_ms:.0f} ms/step, {result.num_gaussians} Gaussians)"
         )
     return result
-
-
-# -- the benchmark -----------------------------------------------------------------------------------------------
-
-
-def run_accuracy_benchmark(
-    scenes: Sequence[str],
-    methods: Sequence[str],
-    base: SceneSpec,
-    schedule: Schedule,
-    bench_dir: Path,
-    seed: int = 0,
-    train_fit: bool = True,
-    log: Optional[Callable[[str], None]] = print,
-    on_result: Optional[Callable[[RunResult], None]] = None,
-) -> List[RunResult]:
-    rows: List[RunResult] = []
-    for variant in scenes:
-        spec = base.with_variant(variant)
-        for method in methods:
-            rows.append(run_method(method, spec, schedule, bench_dir, seed, train_fit=train_fit, log=log))
-            if on_result is not None:
-                on_result(rows[-1])
-    return rows
-
-
-def _lookup(rows: Sequence[RunResult], scene: str, method: str) -> Optional[RunResult]:
-    return next((r for r in rows if r.scene == scene and r.method == method), None)
-
-
-def _fmt(value: float, digits: int = 2) -> str:
-    return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
-
-
-def format_table(rows: Sequence[RunResult]) -> str:
-    """Markdown: one row per run, then the gaps (gsmsdr - plain, sharp - gsmsdr) per scene with their targets."""
-    lines = [
-        "| scene | method | steps | test PSNR | test SSIM | train-view PSNR | train s | ms/step | step x plain | Gaussians |",
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
-    ]
-    for r in rows:
-        plain = _lookup(rows, r.scene, "plain")
-        ratio = r.step_ms / plain.step_ms if plain is not None and plain.step_ms > 0 else float("nan")
-        lines.append(
-            f"| {r.scene} | {r.method} | {r.steps} | {_fmt(r.psnr)} | {_fmt(r.ssim, 4)} | {_fmt(r.train_psnr)} "
-            f"| {r.train_seconds:.0f} | {r.step_ms:.0f} | {_fmt(ratio)} | {r.num_gaussians} |"
-        )
-    gap_lines = [
-        "",
-        "| scene | method | test PSNR - plain (target) | sharp upper bound - method (target) |",
-        "| --- | --- | ---: | ---: |",
-    ]
-    any_gap = False
-    for scene in dict.fromkeys(r.scene for r in rows):
-        plain, sharp = _lookup(rows, scene, "plain"), _lookup(rows, scene, "sharp")
-        for method in ("gsmsdr", "gsmsdr-lite"):
-            r = _lookup(rows, scene, method)
-            if r is None or (plain is None and sharp is None):
-                continue
-            any_gap = True
-            cells = []
-            if plain is not None:
-                gap, target = r.psnr - plain.psnr, GAP_TARGETS.get(scene)
-                verdict = "" if target is None else f" (>= {target:g}: {'met' if gap >= target else 'MISSED'})"
-                cells.append(f"{gap:+.2f}{verdict}")
-            else:
-                cells.append("-")
-            if sharp is not None:
-                gap = sharp.psnr - r.psnr
-                cells.append(f"{gap:+.2f} (<= {UPPER_BOUND_TARGET:g}: {'met' if gap <= UPPER_BOUND_TARGET else 'MISSED'})")
-            else:
-                cells.append("-")
-            gap_lines.append(f"| {scene} | {method} | {cells[0]} | {cells[1]} |")
-    return "\n".join(lines + (gap_lines if any_gap else []))
-
-
-CSV_FIELDS = ("scene", "method", "steps", "psnr", "ssim", "train_psnr", "train_seconds", "step_ms",
-              "step_ratio_vs_plain", "num_gaussians", "eval_seconds")  # fmt: skip
-
-
-def write_results(rows: Sequence[RunResult], out: Path, header: str = "") -> None:
-    """results.csv (one row per run) and results.md (``header`` + :func:`format_table`) in ``out``."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "results.csv", "w", newline="", encoding="utf8") as f:
-        writer = csv.writer(f)
-        writer.writerow(CSV_FIELDS)
-        for r in rows:
-            plain = _lookup(rows, r.scene, "plain")
-            ratio = r.step_ms / plain.step_ms if plain is not None and plain.step_ms > 0 else float("nan")
-            writer.writerow([r.scene, r.method, r.steps, f"{r.psnr:.4f}", f"{r.ssim:.5f}", f"{r.train_psnr:.4f}",
-                             f"{r.train_seconds:.2f}", f"{r.step_ms:.2f}", f"{ratio:.3f}", r.num_gaussians,
-                             f"{r.eval_seconds:.2f}"])  # fmt: skip
-    (out / "results.md").write_text((header + "\n\n" if header else "") + format_table(rows) + "\n", encoding="utf8")

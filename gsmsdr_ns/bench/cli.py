@@ -86,70 +86,6 @@ class KernelsBench:
 
 
 @dataclass
-class AccuracyBench:
-    """Test-view PSNR / SSIM on generated degraded scenes: plain Gaussians (degradation sharp) vs gsmsdr and
-    gsmsdr-lite at the same step budget, with plain on the sharp twin scene as the upper bound; writes results.csv
-    and results.md into --out (see gsmsdr_ns/bench/accuracy.py)."""
-
-    steps: int = 2000
-    """Training steps of every run (schedules are scaled to it identically for every method)."""
-    scenes: Tuple[str, ...] = ("motion", "defocus", "mixres")
-    """Generated suites (gsmsdr-synth variants): motion, defocus, mixres (also motion-strong, mixed)."""
-    methods: Tuple[str, ...] = ("plain", "gsmsdr", "gsmsdr-lite", "sharp")
-    """plain (degradation sharp on the degraded images), gsmsdr, gsmsdr-lite, sharp (plain on the sharp twin)."""
-    width: int = 120
-    """Image width of the generated scenes."""
-    height: int = 90
-    """Image height of the generated scenes."""
-    num_views: int = 24
-    """Views per scene (every --hold-th, from the first, is a sharp test view)."""
-    hold: int = 6
-    """Hold-out interval of the test views."""
-    seed: int = 0
-    """Scene, degradation and training seed."""
-    num_downscales: int = 1
-    """Resolution schedule (and HPKO scales): start at 1/2^num_downscales, reach full resolution at mid-run."""
-    threads: int = 1
-    """torch intra-op threads (0: torch's default). 1 by default: on a busy machine with few cores, torch's
-    OpenMP threads wait on each other (measured on 2 loaded cores: a 120x90 plain step 32 ms with 1 thread,
-    300-700 ms with 2)."""
-    train_fit: bool = True
-    """Also measure the train-view fit (PSNR of the training-mode rgb against the degraded training images)."""
-    out: Path = Path("outputs/bench-accuracy")
-    """Output folder: results.csv, results.md, scenes/ (generated scenes, reused), runs/."""
-
-    def main(self) -> None:
-        import shlex
-        import sys
-
-        import torch
-
-        from gsmsdr_ns.bench.accuracy import SceneSpec, Schedule, format_table, run_accuracy_benchmark, write_results
-
-        if self.threads > 0:
-            torch.set_num_threads(self.threads)
-        base = SceneSpec(self.scenes[0], self.width, self.height, self.num_views, self.seed, self.hold)
-        schedule = Schedule(self.steps, num_downscales=self.num_downscales)
-        command = "gsmsdr-bench accuracy " + " ".join(shlex.quote(a) for a in sys.argv[2:])
-        header = (f"`{command}`: {self.width}x{self.height}, {self.num_views} views (hold {self.hold}), seed "
-                  f"{self.seed}, {self.steps} steps, num_downscales {self.num_downscales}, "
-                  f"{torch.get_num_threads()} torch thread(s), device {'cuda' if torch.cuda.is_available() else 'cpu'}")
-
-        rows: list = []
-
-        def on_result(row) -> None:  # results.csv / results.md after every run: an interrupted run keeps its rows
-            rows.append(row)
-            write_results(rows, self.out, header)
-
-        run_accuracy_benchmark(self.scenes, self.methods, base, schedule, self.out, self.seed, self.train_fit,
-                               on_result=on_result)  # fmt: skip
-        write_results(rows, self.out, header)
-        print(header)
-        print(format_table(rows))
-        print(f"accuracy: wrote {self.out / 'results.csv'} and {self.out / 'results.md'}")
-
-
-@dataclass
 class SuiteBench:
     """Run a benchmark suite (configs/bench/*.yaml: scenes x methods x step budgets x seeds) through nerfstudio's
     trainer; writes results.csv, results.md and PNG plots into --out. Finished runs are kept in <out>/runs/ and
@@ -203,7 +139,6 @@ SUBCOMMANDS = {
     "raster": RasterBench,
     "degrade": DegradeBench,
     "kernels": KernelsBench,
-    "accuracy": AccuracyBench,
     "suite": SuiteBench,
 }
 

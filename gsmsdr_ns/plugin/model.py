@@ -409,7 +409,8 @@ class GSMSDRModel(SplatfactoModel):
     # -- degradation (viewer) -------------------------------------------------------------------------------
 
     def _blur_preview(self, camera: Cameras, rgb: Tensor, depth: Tensor) -> Dict[str, Tensor]:
-        """Viewer outputs of the blur field for an evaluation camera, with the nearest training view's embedding.
+        """Viewer outputs of the blur field for an evaluation camera, as for the nearest training view (its
+        embedding and per-view kernels).
 
         The field runs at the HPKO scale training uses at the model's step (``hpko.scale_for_step``), on the render
         shrunk to that scale's resolution, or further (powers of two) until its longer side is at most
