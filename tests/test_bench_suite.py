@@ -112,7 +112,7 @@ def test_user_scene_without_sharp_twin_skips_the_upper_bound(tmp_path: Path) -> 
 
 
 def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
-    assert set(METHODS) == {"plain", "msd-only", "re-only", "full", "-view", "view-only", "-gaka", "-safm", "-mca",
+    assert set(METHODS) == {"plain", "msd-only", "re-only", "full", "-view", "view", "-gaka", "-safm", "-mca",
                             "-rgbd", "gsmsdr-lite", "sharp"}  # fmt: skip
 
     def model(name: str):
@@ -129,7 +129,7 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
         assert all(getattr(field, other) for other in ("gaka", "safm", "mca", "rgbd") if other != switch)
     assert model("gsmsdr-lite").blur_field.size == "lite"
     assert model("full").blur_field.view_kernels and model("full").blur_field.pixel_kernels
-    assert not model("-view").blur_field.view_kernels and not model("view-only").blur_field.pixel_kernels
+    assert not model("-view").blur_field.view_kernels and model("view").blur_field.mode == "view"
     assert METHODS["re-only"].modules() == dict(GAKA=True, SAFM=True, MCA=True, RGBD=True, HPKO=False)
     assert METHODS["msd-only"].modules() == dict(GAKA=False, SAFM=False, MCA=False, RGBD=True, HPKO=True)
 

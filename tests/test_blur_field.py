@@ -16,6 +16,7 @@ import torch.nn.functional as F
 
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo, kernel_prior_logits, kernel_upsample_matrix
+from gsmsdr_ns.blur.kernels import apply_image_kernels, apply_pixel_kernels
 from gsmsdr_ns.blur.maan import GAKA, MCA, SAFM, BAGSFeatures, RGBDFeatures, normalize_depth, positional_encoding_2d
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, down_up, effective_factor
 
@@ -66,9 +67,10 @@ def test_blur_package_imports_without_nerfstudio():
 # ------------------------------------------------------------------------------------------------ shapes, ranges
 
 
+@pytest.mark.parametrize("mode", ["full", "view"])
 @pytest.mark.parametrize("scale,K", [(3, 5), (2, 9), (1, 17)])
-def test_shapes_kernels_and_masks_at_each_scale(scale, K):
-    f = field()
+def test_shapes_kernels_and_masks_at_each_scale(scale, K, mode):
+    f = field(mode=mode)
     d = 2 ** (scale - 1)
     render, depth, view_ids = inputs(H=32 // d, W=48 // d)
     weights, mask = f(render, depth, view_ids, scale)
@@ -128,7 +130,7 @@ def test_degrade_matches_unfold_reference():
 # ------------------------------------------------------------------------------------------------ gradients
 
 
-@pytest.mark.parametrize("mode", ["full", "msd_only", "re_only"])
+@pytest.mark.parametrize("mode", ["full", "msd_only", "re_only", "view"])
 def test_gradients_reach_every_active_parameter_and_the_render(mode):
     f = field(mode=mode)
     for scale in f.scales:
@@ -217,7 +219,10 @@ def test_lite_size_is_smaller_and_explicit_widths_win():
 def test_shared_dict_hooks():
     f = field(mask_reg_weight=0.001)
     groups = f.get_param_groups({"means": []})
-    assert set(groups) == {"means", "blur_field"} and len(groups["blur_field"]) == len(list(f.parameters()))
+    assert set(groups) == {"means", "blur_field", "blur_view_kernels"}
+    assert len(groups["blur_field"]) + len(groups["blur_view_kernels"]) == len(list(f.parameters()))
+    paper = field(mask_reg_weight=0.001, view_kernels=False).get_param_groups({})
+    assert set(paper) == {"blur_field"}
     mask = torch.full((1, 1, 4, 4), 0.5)
     losses = f.get_loss_dict({}, mask)
     torch.testing.assert_close(losses["blur_mask_reg"], torch.tensor(0.0005))
@@ -535,6 +540,44 @@ def test_view_kernels_train_only_the_drawn_views_in_their_own_group():
         grad = f.heads.view_logits[str(scale)].grad
         assert grad[2].abs().sum() > 0 and grad[[0, 1, 3, 4]].abs().sum() == 0
     with pytest.raises(ValueError, match="pixel_kernels, view_kernels"):
-        BlurFieldConfig(pixel_kernels=False)
+        BlurFieldConfig(pixel_kernels=False, view_kernels=False)
     with pytest.raises(ValueError, match="view_ids"):
         f.heads(torch.zeros(1, f.mcf.out_channels, 4, 4), 1)
+
+
+def test_view_mode_has_no_feature_network_and_blurs_by_one_kernel_per_view():
+    """Mode "view": only per-view tables (all in the blur_view_kernels group), no MAAN; its expanded kernels are
+    applied as a convolution that equals the per-pixel application of the same kernel everywhere."""
+    f = field(mode="view")
+    assert f.mcf is None and f.mca is None and not f.uses_depth
+    assert set(f.get_param_groups({})) == {"blur_view_kernels"}
+    assert num_params(f) == sum(NUM_VIEWS * (k * k + 1) for k in (5, 9, 17))
+    render, _, view_ids = inputs(B=2, H=16, W=24)
+    with torch.no_grad():
+        f.heads.view_logits["3"][view_ids[1]] = kernel_prior_logits(5, sigma=1.5)
+    weights, mask = f(render, None, view_ids, 3)
+    assert weights.stride()[-2:] == (0, 0)  # expanded, not materialised
+    radius = kernel_rms_radius(weights[:, :, :1, :1])
+    assert float(radius[0]) < 1.0 < float(radius[1])
+    fast = f.degrade(render, weights, mask)
+    reference = mask * apply_pixel_kernels(render, weights.contiguous()) + (1 - mask) * render
+    torch.testing.assert_close(fast, reference)
+    with pytest.raises(ValueError, match="view_ids"):
+        f(render, None, torch.tensor([0, NUM_VIEWS]), 3)
+    with pytest.raises(ValueError, match="no feature network"):
+        f.features(render, None, view_ids)
+
+
+def test_apply_image_kernels_matches_the_per_pixel_version_in_float64():
+    g = torch.Generator().manual_seed(3)
+    image = torch.rand(2, 3, 11, 14, dtype=torch.float64, generator=g, requires_grad=True)
+    kernels = torch.rand(2, 49, dtype=torch.float64, generator=g, requires_grad=True)  # any weights, K = 7
+    out = apply_image_kernels(image, kernels)
+    ref = apply_pixel_kernels(image, kernels[:, :, None, None].expand(-1, -1, 11, 14).contiguous())
+    torch.testing.assert_close(out, ref, rtol=0, atol=1e-12)
+    grads = torch.autograd.grad(out.square().sum(), (image, kernels))
+    ref_grads = torch.autograd.grad(ref.square().sum(), (image, kernels))
+    for a, b in zip(grads, ref_grads):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-10)
+    with pytest.raises(ValueError, match="kernels"):
+        apply_image_kernels(image, kernels[:1])

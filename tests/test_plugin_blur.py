@@ -261,8 +261,9 @@ def test_hpko_scale_follows_the_current_render_downscale():
     assert model.hpko_state["kernel_size"] == 17
 
 
-def test_eval_rgb_is_the_sharp_render_and_viewer_outputs_are_added():
-    model = build({"degradations": records("motion")})
+@pytest.mark.parametrize("mode", ["full", "view"])
+def test_eval_rgb_is_the_sharp_render_and_viewer_outputs_are_added(mode):
+    model = build({"degradations": records("motion")}, blur_field=BlurFieldConfig(mode=mode))
     model.set_train_camera_centres(torch.stack([look_from([2.0, 0.5, 1.0]), look_from([-2.0, 0.5, 1.0])] * 2))
     camera = make_camera(look_from([-1.9, 0.5, 1.1]), width=64, height=48)
     model.eval()
@@ -366,5 +367,22 @@ def test_ns_train_gsmsdr_lite_with_ablation_switches(scenes, tmp_path):
     state = torch.load(run_dir / "nerfstudio_models" / f"step-{9:09d}.ckpt", map_location="cpu")["pipeline"]
     field_keys = [k for k in state if k.startswith("_model.blur_field.")]
     assert field_keys and not any(".mca." in k or "gaka" in k for k in field_keys)  # msd_only: BAGS' plain CNN
+    tags = scalar_tags(run_dir)
+    assert tags["Train Loss Dict/blur_mask_reg"] and all(math.isfinite(v) for v in tags["Train Loss"])
+
+
+def test_ns_train_gsmsdr_with_the_view_mode_field(scenes, tmp_path):
+    """Blur field mode view through ns-train: only per-view tables in the checkpoint, trained in their own optimizer
+    group, and the usual losses stay finite."""
+    args = ["gsmsdr-lite", "--data", scenes["motion"], "--output-dir", tmp_path / "outputs", "--timestamp", "view",
+            "--max-num-iterations", 10, "--steps-per-save", 10, *TRAIN_FLAGS, *BLUR_FLAGS,
+            "--pipeline.model.blur-field.mode", "view"]  # fmt: skip
+    proc = run_cli("ns-train", args, cwd=tmp_path)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-5000:]
+    run_dir = tmp_path / "outputs" / "motion" / "gsmsdr-lite" / "view"
+    checkpoint = torch.load(run_dir / "nerfstudio_models" / f"step-{9:09d}.ckpt", map_location="cpu")
+    field_keys = [k for k in checkpoint["pipeline"] if k.startswith("_model.blur_field.")]
+    assert field_keys and all(".view_logits." in k or ".mask_logits." in k for k in field_keys), field_keys
+    assert set(checkpoint["optimizers"]) >= {"blur_view_kernels"} and "blur_field" not in checkpoint["optimizers"]
     tags = scalar_tags(run_dir)
     assert tags["Train Loss Dict/blur_mask_reg"] and all(math.isfinite(v) for v in tags["Train Loss"])

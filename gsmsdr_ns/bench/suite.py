@@ -103,8 +103,8 @@ METHODS: Dict[str, MethodSpec] = {
         _method("full", "GS-MSDR (full)", "gsmsdr", "the gsmsdr preset: MAAN + HPKO, with per-view kernels"),
         _method("-view", "-view kernels", "gsmsdr", "full without per-view kernels (the paper's blur field)",
                 view_kernels=False),  # fmt: skip
-        _method("view-only", "view kernels only", "gsmsdr", "full with per-view kernels but no per-pixel kernel heads",
-                pixel_kernels=False),  # fmt: skip
+        _method("view", "per-view kernels (mode view)", "gsmsdr",
+                "one kernel and mask per training view, no feature network (fast)", mode="view"),  # fmt: skip
         _method("-gaka", "-GAKA", "gsmsdr", "full without Global-Aware Kernel Attention", gaka=False),
         _method("-safm", "-SAFM", "gsmsdr", "full without the Spatial Adaptive Fusion Module", safm=False),
         _method("-mca", "-MCA", "gsmsdr", "full without the Multi-modal Context Adapter", mca=False),

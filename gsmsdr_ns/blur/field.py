@@ -12,7 +12,9 @@ Modes (paper Table 7):
 * ``full``     MAAN (SFE + 2 FANs of GAKA/SAFM) -> MCF -> MCA -> HPKO heads (3 scales);
 * ``msd_only`` HPKO heads on BAGS' plain CNN features (MCF without FANs, no MCA): multi-scale deblurring only;
 * ``re_only``  MAAN features with one full-resolution kernel scale (K_1) and no coarse-to-fine HPKO
-  (= Table 6's "-HPKO" row).
+  (= Table 6's "-HPKO" row);
+* ``view``     (ours, not in the paper) one kernel and one mask per training view and scale, no feature network:
+  camera shake at the cost of a depthwise convolution (:class:`ViewKernels`).
 
 The ablation switches ``gaka``, ``safm``, ``mca``, ``rgbd``, ``hpko`` (Table 6) remove their modules' parameters.
 """
@@ -25,8 +27,8 @@ from typing import Any, Dict, List, Literal, NamedTuple, Optional, Tuple
 
 from torch import Tensor, nn
 
-from .hpko import HPKOHeads, HPKOScheduler, check_kernel_sizes
-from .kernels import apply_pixel_kernels
+from .hpko import HPKOHeads, HPKOScheduler, ViewKernels, check_kernel_sizes
+from .kernels import apply_image_kernels, apply_pixel_kernels
 from .maan import MCA, BAGSFeatures, ContextualFeatures, RGBDFeatures
 
 __all__ = ["BlurFieldConfig", "BlurField", "BlurFieldDims", "BlurFieldModules"]
@@ -63,9 +65,10 @@ class BlurFieldModules(NamedTuple):
 class BlurFieldConfig:
     """GS-MSDR blur field (MAAN + HPKO). Plain dataclass (no nerfstudio import); ``setup(**kwargs)`` builds it."""
 
-    mode: Literal["full", "msd_only", "re_only"] = "full"
+    mode: Literal["full", "msd_only", "re_only", "view"] = "full"
     """full: MAAN + HPKO. msd_only: HPKO on BAGS' plain CNN (no GAKA/SAFM/MCA). re_only: MAAN with a single
-    full-resolution kernel scale (no HPKO). The mode overrides the module switches below."""
+    full-resolution kernel scale (no HPKO). view: one kernel and mask per training view and HPKO scale, no feature
+    network (fast; camera shake only). The mode overrides the module switches below."""
     size: Literal["default", "lite"] = "default"
     """Width preset for fields left at None: default (n=32, view 32, pos 16, mid 64: BAGS' 80-channel MCF) or
     lite (n=16, view 16, pos 8, mid 32) for CPU training."""
@@ -126,8 +129,8 @@ class BlurFieldConfig:
     """Steps where HPKO goes one scale finer; None: follow the model's resolution schedule (recommended)."""
 
     def __post_init__(self) -> None:
-        if self.mode not in ("full", "msd_only", "re_only"):
-            raise ValueError(f"mode must be full, msd_only or re_only, got {self.mode!r}")
+        if self.mode not in ("full", "msd_only", "re_only", "view"):
+            raise ValueError(f"mode must be full, msd_only, re_only or view, got {self.mode!r}")
         if self.size not in _SIZE_PRESETS:
             raise ValueError(f"size must be one of {sorted(_SIZE_PRESETS)}, got {self.size!r}")
         check_kernel_sizes(self.kernel_sizes)
@@ -151,6 +154,8 @@ class BlurFieldConfig:
     def modules(self) -> BlurFieldModules:
         if self.mode == "msd_only":
             return BlurFieldModules(False, False, False, False, self.rgbd, self.hpko)
+        if self.mode == "view":
+            return BlurFieldModules(False, False, False, False, False, self.hpko)
         if self.mode == "re_only":
             return BlurFieldModules(True, self.gaka, self.safm, self.mca, self.rgbd, False)
         return BlurFieldModules(True, self.gaka, self.safm, self.mca, self.rgbd, self.hpko)
@@ -197,7 +202,22 @@ class BlurField(nn.Module):
         super().__init__()
         self.config = config
         mods, dims = config.modules, config.dims
+        self._num_train_views = int(num_train_views)
         self.uses_depth = mods.rgbd and (use_depth is None or bool(use_depth))
+        self.scales: Tuple[int, ...] = tuple(range(len(config.kernel_sizes), 0, -1)) if mods.hpko else (1,)
+        self.mcf: Optional[ContextualFeatures] = None
+        self.mca: Optional[MCA] = None
+        self.heads: nn.Module
+        if config.mode == "view":
+            self.heads = ViewKernels(
+                num_train_views,
+                config.kernel_sizes,
+                self.scales,
+                progressive=config.progressive,
+                prior_sigma=config.kernel_prior_sigma,
+                mask_init=config.mask_init,
+            )
+            return
         in_ch = 4 if self.uses_depth else 3
         if mods.maan:
             net: nn.Module = RGBDFeatures(
@@ -208,7 +228,6 @@ class BlurField(nn.Module):
         self.mcf = ContextualFeatures(num_train_views, dims.view_dim, dims.pos_channels, net, config.detach_inputs)
         channels = self.mcf.out_channels
         self.mca = MCA(channels, config.mca_pool_size) if mods.mca else None
-        self.scales: Tuple[int, ...] = tuple(range(len(config.kernel_sizes), 0, -1)) if mods.hpko else (1,)
         self.heads = HPKOHeads(
             channels,
             dims.mid_channels,
@@ -223,7 +242,7 @@ class BlurField(nn.Module):
 
     @property
     def num_train_views(self) -> int:
-        return self.mcf.num_views
+        return self._num_train_views
 
     def kernel_size(self, scale: int) -> int:
         """K_s of an active scale."""
@@ -233,6 +252,8 @@ class BlurField(nn.Module):
 
     def features(self, render: Tensor, depth: Optional[Tensor], view_ids: Tensor) -> Tensor:
         """MCF (-> MCA) features. render [B,3,H,W], depth [B,1,H,W] or None, view_ids [B] -> [B, C, H, W]."""
+        if self.mcf is None:
+            raise ValueError("a blur field in mode 'view' has no feature network")
         f = self.mcf(render, depth if self.uses_depth else None, view_ids)
         return self.mca(f) if self.mca is not None else f
 
@@ -249,6 +270,13 @@ class BlurField(nn.Module):
             kernel_weights: [B, K_s * K_s, H, W], softmax over dim 1 (sums to 1), row-major window index.
             mask: [B, 1, H, W] in (0, 1).
         """
+        if self.mcf is None:
+            if render.dim() != 4 or view_ids.shape != render.shape[:1]:
+                raise ValueError(f"render [B, 3, H, W] and view_ids [B] expected, got {list(render.shape)}, "
+                                 f"{list(view_ids.shape)}")  # fmt: skip
+            if view_ids.numel() and (int(view_ids.min()) < 0 or int(view_ids.max()) >= self.num_train_views):
+                raise ValueError(f"view_ids must lie in [0, {self.num_train_views}), got {view_ids.tolist()}")
+            return self.heads(view_ids, scale, render.shape[-2], render.shape[-1])
         return self.heads(self.features(render, depth, view_ids), scale, view_ids)
 
     @staticmethod
@@ -265,7 +293,12 @@ class BlurField(nn.Module):
         """
         if mask.dim() != 4 or mask.shape[1] != 1 or mask.shape[-2:] != render.shape[-2:]:
             raise ValueError(f"mask must be [B, 1, H, W] matching render {list(render.shape)}, got {list(mask.shape)}")
-        return mask * apply_pixel_kernels(render, kernel_weights.to(render.dtype)) + (1.0 - mask) * render
+        if kernel_weights.dim() == 4 and kernel_weights.stride(-1) == 0 and kernel_weights.stride(-2) == 0:
+            # one kernel per image, expanded over the pixels (mode "view"): a depthwise convolution
+            blurred = apply_image_kernels(render, kernel_weights[:, :, 0, 0])
+        else:
+            blurred = apply_pixel_kernels(render, kernel_weights.to(render.dtype))
+        return mask * blurred + (1.0 - mask) * render
 
     # -------------------------------------------------------------------- nerfstudio-style shared-dict hooks
 
@@ -283,14 +316,17 @@ class BlurField(nn.Module):
         """Add the ``blur_field`` group (BAGS trains it with Adam, lr 5e-4 constant) and, with per-view kernels,
         ``blur_view_kernels`` (each view's table gets a gradient only when that view is drawn: it needs a higher
         learning rate)."""
-        view = list(self.heads.view_logits.parameters())
+        view = self.heads.per_view_parameters()
         view_ids = {id(p) for p in view}
-        param_groups["blur_field"] = [p for p in self.parameters() if id(p) not in view_ids]
+        shared = [p for p in self.parameters() if id(p) not in view_ids]
+        if shared:  # none in mode "view"
+            param_groups["blur_field"] = shared
         if view:
             param_groups["blur_view_kernels"] = view
         return param_groups
 
     def parameters_for_scale(self, scale: int) -> List[nn.Parameter]:
         """Parameters that take part in ``forward(..., scale)`` (feature network, MCA and that scale's heads)."""
-        shared = list(self.mcf.parameters()) + (list(self.mca.parameters()) if self.mca is not None else [])
+        shared = list(self.mcf.parameters()) if self.mcf is not None else []
+        shared += list(self.mca.parameters()) if self.mca is not None else []
         return shared + list(self.heads.parameters_for_scale(scale))

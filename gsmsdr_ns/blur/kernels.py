@@ -230,6 +230,33 @@ def apply_pixel_kernels(
     return _PixelKernelsTorch.apply(image, weights, K)
 
 
+def apply_image_kernels(
+    image: Tensor,  # [B, C, H, W]
+    kernels: Tensor,  # [B, K*K]
+) -> Tensor:  # [B, C, H, W]
+    """Blur each image with one K x K kernel: ``apply_pixel_kernels`` with the same kernel at every pixel.
+
+    Same convention (row-major index, correlation, replicate border), computed as one grouped ``F.conv2d``: the cost
+    of a depthwise convolution, no per-pixel weights. Differentiable in both inputs.
+
+    Args:
+        image: [B, C, H, W] floating-point image.
+        kernels: [B, K*K] for an odd K (cast to the image's dtype).
+    Returns:
+        [B, C, H, W]
+    """
+    if image.dim() != 4:
+        raise ValueError(f"image: expected shape [B, C, H, W], got {list(image.shape)}")
+    if kernels.dim() != 2 or kernels.shape[0] != image.shape[0]:
+        raise ValueError(f"kernels: expected shape [{image.shape[0]}, K*K], got {list(kernels.shape)}")
+    B, C, H, W = image.shape
+    K = pixel_kernel_size(kernels.shape[1])
+    p = K // 2
+    padded = F.pad(image.reshape(1, B * C, H, W), (p, p, p, p), mode="replicate")
+    weight = kernels.to(image.dtype).reshape(B, 1, K, K).repeat_interleave(C, dim=0)  # [B*C, 1, K, K]
+    return F.conv2d(padded, weight, groups=B * C).reshape(B, C, H, W)
+
+
 def apply_pixel_kernels_unfold(
     image: Tensor,  # [B, C, H, W]
     weights: Tensor,  # [B, K*K, H, W]
