@@ -34,6 +34,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
+from gsmsdr_ns.blur.hpko import ViewKernels
 from gsmsdr_ns.blur.kernels import apply_pixel_kernels, apply_pixel_kernels_unfold
 from gsmsdr_ns.blur.profile import ResolutionLossModel
 from gsmsdr_ns.render import rasterization
@@ -459,6 +460,11 @@ def saturate_heads(field: BlurField, scale: int, hot: int, mask_sign: float) -> 
     """Make the scale's heads output kernel logits of +-1e4 (one-hot at window index ``hot``) and mask logits of
     ``mask_sign * 1e4`` regardless of the features."""
     with torch.no_grad():
+        if isinstance(field.heads, ViewKernels):  # mode view: per-view tables, no heads
+            field.heads.view_logits[str(scale)].fill_(-1e4)
+            field.heads.view_logits[str(scale)][:, hot] = 1e4
+            field.heads.mask_logits[str(scale)].fill_(mask_sign * 1e4)
+            return
         blur, mask = field.heads.blur[str(scale)], field.heads.mask[str(scale)]
         blur.weight.mul_(1e-3)
         blur.bias.fill_(-1e4)
@@ -467,7 +473,7 @@ def saturate_heads(field: BlurField, scale: int, hot: int, mask_sign: float) -> 
         mask.bias.fill_(mask_sign * 1e4)
 
 
-@pytest.mark.parametrize("mode", ["full", "msd_only", "re_only"])
+@pytest.mark.parametrize("mode", ["full", "msd_only", "re_only", "view"])
 def test_blur_field_saturated_heads_on_tiny_and_constant_images(mode):
     """The MAAN / BAGS feature networks and the HPKO heads on 1x1, one-row and one-column renders of black, white
     and constant images (zero-variance features for every norm layer), with heads saturated to one-hot kernels
@@ -665,7 +671,7 @@ def run_autocast_checks(device="cuda", dtype: Optional[torch.dtype] = None) -> D
     gen = torch.Generator().manual_seed(0)
 
     # blur field + degrade with saturated heads, at every scale, on tiny and moderate images
-    for mode in ("full", "msd_only", "re_only"):
+    for mode in ("full", "msd_only", "re_only", "view"):
         config = BlurFieldConfig(mode=mode, size="lite", kernel_sizes=(3, 5, 9))
         for scale in config.setup(num_train_views=2).scales:
             field = config.setup(num_train_views=2).to(device).train()
