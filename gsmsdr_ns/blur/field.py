@@ -29,7 +29,7 @@ from torch import Tensor, nn
 
 from .hpko import HPKOHeads, HPKOScheduler, ViewKernels, check_kernel_sizes
 from .kernels import apply_image_kernels, apply_pixel_kernels
-from .maan import MCA, BAGSFeatures, ContextualFeatures, RGBDFeatures
+from .maan import MCA, BAGSFeatures, ContextualFeatures, RGBDFeatures, _check_bchw, check_view_ids
 
 __all__ = ["BlurFieldConfig", "BlurField", "BlurFieldDims", "BlurFieldModules"]
 
@@ -271,11 +271,8 @@ class BlurField(nn.Module):
             mask: [B, 1, H, W] in (0, 1).
         """
         if self.mcf is None:
-            if render.dim() != 4 or view_ids.shape != render.shape[:1]:
-                raise ValueError(f"render [B, 3, H, W] and view_ids [B] expected, got {list(render.shape)}, "
-                                 f"{list(view_ids.shape)}")  # fmt: skip
-            if view_ids.numel() and (int(view_ids.min()) < 0 or int(view_ids.max()) >= self.num_train_views):
-                raise ValueError(f"view_ids must lie in [0, {self.num_train_views}), got {view_ids.tolist()}")
+            _check_bchw(render, "render", 3)
+            check_view_ids(view_ids, render.shape[0], self.num_train_views)
             return self.heads(view_ids, scale, render.shape[-2], render.shape[-1])
         return self.heads(self.features(render, depth, view_ids), scale, view_ids)
 

@@ -274,6 +274,14 @@ class BAGSFeatures(nn.Module):
 # ------------------------------------------------------------------------------------------------ MCF and MCA
 
 
+def check_view_ids(view_ids: Tensor, batch: int, num_views: int) -> None:
+    """Raise ValueError unless ``view_ids`` is [batch] with every id in [0, num_views)."""
+    if view_ids.shape != (batch,):
+        raise ValueError(f"view_ids must have shape [{batch}], got {list(view_ids.shape)}")
+    if view_ids.numel() and (int(view_ids.min()) < 0 or int(view_ids.max()) >= num_views):
+        raise ValueError(f"view_ids must lie in [0, {num_views}), got {view_ids.tolist()}")
+
+
 class ContextualFeatures(nn.Module):
     """Multi-modal Contextual Features (paper eq. 8): ``l(i) ++ p(x) ++ f_RGB-D(x, i)``.
 
@@ -306,10 +314,7 @@ class ContextualFeatures(nn.Module):
     def forward(self, render: Tensor, depth: Optional[Tensor], view_ids: Tensor) -> Tensor:
         _check_bchw(render, "render", 3)
         B, _, H, W = render.shape
-        if view_ids.shape != (B,):
-            raise ValueError(f"view_ids must have shape [{B}], got {list(view_ids.shape)}")
-        if view_ids.numel() and (int(view_ids.min()) < 0 or int(view_ids.max()) >= self.num_views):
-            raise ValueError(f"view_ids must lie in [0, {self.num_views}), got {view_ids.tolist()}")
+        check_view_ids(view_ids, B, self.num_views)
         x = render.detach() if self.detach_inputs else render
         if self.uses_depth:
             if depth is None:
