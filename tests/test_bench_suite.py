@@ -149,8 +149,20 @@ def test_fingerprint_follows_the_resolved_preset(tmp_path: Path, monkeypatch: py
         optimizers["blur_field"]["optimizer"].lr *= 2
         return optimizers
 
+    plain = RunKey("motion", "plain", 20, 0)
+    plain_before = fingerprint(suite, plain)
     monkeypatch.setattr(method_config, "gsmsdr_optimizers", changed)
     assert fingerprint(suite, key) != before
+    # plain Gaussians never build the blur field: its settings do not invalidate their records
+    assert fingerprint(suite, plain) == plain_before
+
+    def means_changed(*args, **kwargs):
+        optimizers = original(*args, **kwargs)
+        optimizers["means"]["optimizer"].lr *= 2
+        return optimizers
+
+    monkeypatch.setattr(method_config, "gsmsdr_optimizers", means_changed)
+    assert fingerprint(suite, plain) != plain_before
 
 
 def test_quick_flag_maps_to_the_quick_suite() -> None:

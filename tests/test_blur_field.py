@@ -13,6 +13,7 @@ import time
 import pytest
 import torch
 import torch.nn.functional as F
+from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo, kernel_prior_logits, kernel_upsample_matrix
@@ -79,7 +80,7 @@ def test_shapes_kernels_and_masks_at_each_scale(scale, K, mode):
     assert mask.shape == (2, 1, 32 // d, 48 // d)
     torch.testing.assert_close(weights.sum(1), torch.ones(2, 32 // d, 48 // d))
     assert (weights > 0).all()
-    assert ((mask > 0) & (mask < 1)).all()
+    assert ((mask > 0) & (mask < 1)).all() if mode == "full" else (mask == 1).all()  # view: no mask
     assert f.degrade(render, weights, mask).shape == render.shape
 
 
@@ -125,6 +126,40 @@ def test_degrade_matches_unfold_reference():
         m = torch.rand(B, 1, H, W)
         expected = m * reference_apply(render, w) + (1 - m) * render
         torch.testing.assert_close(BlurField.degrade(render, w, m), expected)
+
+
+def test_linear_light_blur_reproduces_a_camera_blur_and_keeps_the_identities():
+    # a camera averages irradiance: a black/white edge blurred in linear light, then sRGB-encoded
+    render = torch.zeros(1, 3, 8, 12, dtype=torch.float64)
+    render[..., 6:] = 1.0
+    K = 5
+    box = torch.zeros(1, K * K, 8, 12, dtype=torch.float64)
+    box[:, 2 * K : 3 * K] = 1.0 / K  # horizontal 5-tap box (the kernel's middle row)
+    ones = torch.ones(1, 1, 8, 12, dtype=torch.float64)
+    camera = linear_rgb_to_rgb(reference_apply(rgb_to_linear_rgb(render), box))
+    torch.testing.assert_close(BlurField.degrade(render, box, ones, linear_light=True), camera)
+    # blurring the encoded values instead is a different image (the edge's mid-greys are darker)
+    encoded = BlurField.degrade(render, box, ones)
+    assert float((encoded - camera).abs().max()) > 0.1
+    # zero mask: exactly the render; identity kernel: the render up to the encoding round trip
+    x, _, _ = inputs()
+    B, _, H, W = x.shape
+    w = torch.softmax(torch.randn(B, 81, H, W), dim=1)
+    assert torch.equal(BlurField.degrade(x, w, torch.zeros(B, 1, H, W), linear_light=True), x)
+    identity = torch.zeros(B, 81, H, W)
+    identity[:, 40] = 1.0
+    torch.testing.assert_close(BlurField.degrade(x, identity, torch.ones(B, 1, H, W), linear_light=True), x)
+
+
+def test_linear_light_gradients_are_finite_at_black_and_white():
+    # the sRGB curve's power branch has an infinite slope at 0; kornia clamps it, this keeps it that way
+    row = torch.tensor([0.0, 0.0, 0.0, 0.0, 1e-8, 0.04045, 0.5, 1.0])  # blurred black stays exactly 0
+    render = row.repeat(3, 4, 1)[None].requires_grad_()  # [1, 3, 4, 8]
+    w = torch.softmax(torch.randn(1, 9, 4, 8), dim=1).requires_grad_()
+    out = BlurField.degrade(render, w, torch.full((1, 1, 4, 8), 0.7), linear_light=True)
+    out.square().sum().backward()
+    assert torch.isfinite(out).all() and torch.isfinite(render.grad).all() and torch.isfinite(w.grad).all()
+    assert render.grad.abs().sum() > 0
 
 
 # ------------------------------------------------------------------------------------------------ gradients
@@ -551,7 +586,7 @@ def test_view_mode_has_no_feature_network_and_blurs_by_one_kernel_per_view():
     f = field(mode="view")
     assert f.mcf is None and f.mca is None and not f.uses_depth
     assert set(f.get_param_groups({})) == {"blur_view_kernels"}
-    assert num_params(f) == sum(NUM_VIEWS * (k * k + 1) for k in (5, 9, 17))
+    assert num_params(f) == sum(NUM_VIEWS * k * k for k in (5, 9, 17))  # kernels only: the mask is 1
     render, _, view_ids = inputs(B=2, H=16, W=24)
     with torch.no_grad():
         f.heads.view_logits["3"][view_ids[1]] = kernel_prior_logits(5, sigma=1.5)
@@ -559,9 +594,10 @@ def test_view_mode_has_no_feature_network_and_blurs_by_one_kernel_per_view():
     assert weights.stride()[-2:] == (0, 0)  # expanded, not materialised
     radius = kernel_rms_radius(weights[:, :, :1, :1])
     assert float(radius[0]) < 1.0 < float(radius[1])
+    assert torch.equal(mask, torch.ones(2, 1, 16, 24))
+    assert f.get_loss_dict({}, mask) == {} and field(mode="full").get_loss_dict({}, mask).keys() == {"blur_mask_reg"}
     fast = f.degrade(render, weights, mask)
-    reference = mask * apply_pixel_kernels(render, weights.contiguous()) + (1 - mask) * render
-    torch.testing.assert_close(fast, reference)
+    torch.testing.assert_close(fast, apply_pixel_kernels(render, weights.contiguous()))
     with pytest.raises(ValueError, match="view_ids"):
         f(render, None, torch.tensor([0, NUM_VIEWS]), 3)
     with pytest.raises(ValueError, match="no feature network"):

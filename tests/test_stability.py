@@ -463,8 +463,7 @@ def saturate_heads(field: BlurField, scale: int, hot: int, mask_sign: float) -> 
         if isinstance(field.heads, ViewKernels):  # mode view: per-view tables, no heads
             field.heads.view_logits[str(scale)].fill_(-1e4)
             field.heads.view_logits[str(scale)][:, hot] = 1e4
-            field.heads.mask_logits[str(scale)].fill_(mask_sign * 1e4)
-            return
+            return  # no mask to saturate: mode view's mask is 1
         blur, mask = field.heads.blur[str(scale)], field.heads.mask[str(scale)]
         blur.weight.mul_(1e-3)
         blur.bias.fill_(-1e4)
@@ -494,7 +493,7 @@ def test_blur_field_saturated_heads_on_tiny_and_constant_images(mode):
                     depth = torch.full((1, 1, H, W), 3.0)  # constant depth: normalises to zeros
                     field.zero_grad(set_to_none=True)
                     kernels, mask = field(render, depth, torch.tensor([1]), scale)
-                    degraded = BlurField.degrade(render, kernels, mask)
+                    degraded = BlurField.degrade(render, kernels, mask, linear_light=True)  # black: sRGB curve at 0
                     loss = (degraded - 0.5).abs().mean() + field.mask_loss(mask)
                     loss.backward()
                     what = f"{mode} scale {scale} mask {mask_sign:+g} {H}x{W} {kind}"

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import copy
 import dataclasses
 import datetime
 import hashlib
@@ -104,7 +105,7 @@ METHODS: Dict[str, MethodSpec] = {
         _method("-view", "-view kernels", "gsmsdr", "full without per-view kernels (the paper's blur field)",
                 view_kernels=False),  # fmt: skip
         _method("view", "per-view kernels (mode view)", "gsmsdr",
-                "one kernel and mask per training view, no feature network (fast)", mode="view"),  # fmt: skip
+                "one kernel per training view (mask 1), no feature network (fast)", mode="view"),  # fmt: skip
         _method("-gaka", "-GAKA", "gsmsdr", "full without Global-Aware Kernel Attention", gaka=False),
         _method("-safm", "-SAFM", "gsmsdr", "full without the Spatial Adaptive Fusion Module", safm=False),
         _method("-mca", "-MCA", "gsmsdr", "full without the Multi-modal Context Adapter", mca=False),
@@ -531,9 +532,15 @@ def evaluate_test_views(run, lpips=None) -> Dict[str, float]:
 
 def preset_fingerprint(method: MethodSpec) -> str:
     """The resolved model and optimizer settings of ``method`` (its preset with its changes applied), so a record
-    made before a preset default changed is rerun. Paths are left out."""
+    made before a preset default changed is rerun. Paths are left out, and so are the blur field's settings for
+    methods that never build it (plain, sharp)."""
     config = method.make_config(Path("data"), Path("outputs"))
-    return repr(config.pipeline.model) + repr(sorted(config.optimizers.items()))
+    model, optimizers = config.pipeline.model, dict(config.optimizers)
+    if not method.has_blur_field:
+        model = copy.copy(model)
+        model.blur_field = None
+        optimizers = {k: v for k, v in optimizers.items() if not k.startswith("blur_")}
+    return repr(model) + repr(sorted(optimizers.items()))
 
 
 def fingerprint(suite: Suite, key: RunKey) -> str:

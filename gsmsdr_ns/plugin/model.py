@@ -31,6 +31,7 @@ from urllib.parse import urlparse
 
 import torch
 import torch.nn.functional as F
+from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig
@@ -398,7 +399,7 @@ class GSMSDRModel(SplatfactoModel):
             assert self.blur_field is not None
             depth_in = depth.permute(2, 0, 1)[None] if plan.blur_uses_depth else None
             kernels, mask = self.blur_field(image, depth_in, view_ids, plan.blur_scale.scale)
-            image = BlurField.degrade(image, kernels, mask)
+            image = BlurField.degrade(image, kernels, mask, self.blur_field.config.linear_light)
             outputs["blur_mask"] = mask[0].permute(1, 2, 0)
         if plan.resolution_factor > 1.0:
             assert self.resolution_model is not None
@@ -435,7 +436,10 @@ class GSMSDRModel(SplatfactoModel):
         view_ids = torch.tensor([nearest_view(self.train_camera_centres, centre)], device=image.device)
         kernels, mask = self.blur_field(low, low_depth, view_ids, info.scale)
         extent = kernel_spread(kernels) * info.downsample * mask  # kernel taps are pixels at the scale's resolution
-        blurred = apply_pixel_kernels(low, coarsen_kernels(kernels, d // info.downsample))
+        linear = self.blur_field.config.linear_light
+        source = rgb_to_linear_rgb(low) if linear else low
+        blurred = apply_pixel_kernels(source, coarsen_kernels(kernels, d // info.downsample))
+        blurred = linear_rgb_to_rgb(blurred) if linear else blurred
 
         def enlarge(x: Tensor) -> Tensor:
             return x if d == 1 else F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False)
