@@ -282,31 +282,42 @@ class BlurField(nn.Module):
         return self.heads(self.features(render, depth, view_ids), scale, view_ids)
 
     @staticmethod
-    def degrade(render: Tensor, kernel_weights: Tensor, mask: Tensor, linear_light: bool = False) -> Tensor:
-        """``m * apply_pixel_kernels(render, k) + (1 - m) * render``; with ``linear_light`` the kernels blur
-        ``srgb_to_linear(render)`` and the result is re-encoded (``linear_to_srgb``) before the blend.
+    def blur(render: Tensor, kernel_weights: Tensor, linear_light: bool = False) -> Tensor:
+        """``apply_pixel_kernels(render, k)``; with ``linear_light`` the kernels blur ``srgb_to_linear(render)`` and
+        the result is re-encoded (``linear_to_srgb``).
 
         Args:
-            render: [B, C, H, W] (not detached: gradients reach the Gaussians); sRGB-encoded in [0, 1] when
-                ``linear_light``.
-            kernel_weights: [B, K*K, H, W].
-            mask: [B, 1, H, W].
+            render: [B, C, H, W]; sRGB-encoded in [0, 1] when ``linear_light``.
+            kernel_weights: [B, K*K, H, W]; expanded with stride 0 over the pixels (mode "view"), applied as one
+                convolution per image.
             linear_light: blur linear light (a camera's blur) instead of the encoded values.
         Returns:
             [B, C, H, W], in the render's dtype (or wider). Kernels predicted in a lower precision (the heads under
             ``torch.autocast``) are applied in the render's dtype.
         """
-        if mask.dim() != 4 or mask.shape[1] != 1 or mask.shape[-2:] != render.shape[-2:]:
-            raise ValueError(f"mask must be [B, 1, H, W] matching render {list(render.shape)}, got {list(mask.shape)}")
         source = rgb_to_linear_rgb(render) if linear_light else render
         if kernel_weights.dim() == 4 and kernel_weights.stride(-1) == 0 and kernel_weights.stride(-2) == 0:
             # one kernel per image, expanded over the pixels (mode "view"): a depthwise convolution
             blurred = apply_image_kernels(source, kernel_weights[:, :, 0, 0])
         else:
             blurred = apply_pixel_kernels(source, kernel_weights.to(source.dtype))
-        if linear_light:
-            blurred = linear_rgb_to_rgb(blurred)
-        return mask * blurred + (1.0 - mask) * render
+        return linear_rgb_to_rgb(blurred) if linear_light else blurred
+
+    @staticmethod
+    def degrade(render: Tensor, kernel_weights: Tensor, mask: Tensor, linear_light: bool = False) -> Tensor:
+        """``m * blur(render, k, linear_light) + (1 - m) * render`` (the blend is on the encoded values).
+
+        Args:
+            render: [B, C, H, W] (not detached: gradients reach the Gaussians); see :meth:`blur`.
+            kernel_weights: [B, K*K, H, W].
+            mask: [B, 1, H, W].
+            linear_light: see :meth:`blur`.
+        Returns:
+            [B, C, H, W], in the render's dtype (or wider).
+        """
+        if mask.dim() != 4 or mask.shape[1] != 1 or mask.shape[-2:] != render.shape[-2:]:
+            raise ValueError(f"mask must be [B, 1, H, W] matching render {list(render.shape)}, got {list(mask.shape)}")
+        return mask * BlurField.blur(render, kernel_weights, linear_light) + (1.0 - mask) * render
 
     # -------------------------------------------------------------------- nerfstudio-style shared-dict hooks
 

@@ -31,7 +31,6 @@ from urllib.parse import urlparse
 
 import torch
 import torch.nn.functional as F
-from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig
@@ -40,7 +39,6 @@ from torch import Tensor
 
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.hpko import HPKOScheduler
-from gsmsdr_ns.blur.kernels import apply_pixel_kernels
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, effective_factor
 from gsmsdr_ns.plugin.degradation_plan import (
     DegradationPlan,
@@ -436,10 +434,8 @@ class GSMSDRModel(SplatfactoModel):
         view_ids = torch.tensor([nearest_view(self.train_camera_centres, centre)], device=image.device)
         kernels, mask = self.blur_field(low, low_depth, view_ids, info.scale)
         extent = kernel_spread(kernels) * info.downsample * mask  # kernel taps are pixels at the scale's resolution
-        linear = self.blur_field.config.linear_light
-        source = rgb_to_linear_rgb(low) if linear else low
-        blurred = apply_pixel_kernels(source, coarsen_kernels(kernels, d // info.downsample))
-        blurred = linear_rgb_to_rgb(blurred) if linear else blurred
+        coarse = coarsen_kernels(kernels, d // info.downsample)
+        blurred = BlurField.blur(low, coarse, self.blur_field.config.linear_light)
 
         def enlarge(x: Tensor) -> Tensor:
             return x if d == 1 else F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False)
