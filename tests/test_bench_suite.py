@@ -217,12 +217,12 @@ def test_timing_recorder_and_evaluations_do_not_change_training(tmp_path: Path) 
     from gsmsdr_ns.blur.field import BlurField
 
     data = ensure_scene(tmp_path, SceneSpec("motion", 48, 36, 8, 0, 4, num_points=300))
-    degrade = BlurField.__dict__["degrade"]
+    blur = BlurField.__dict__["blur"]
     plain_losses, plain_final, _ = _train_losses(data, 12, record=False)
     losses, final, recorder = _train_losses(data, 12, record=True, evaluate_at=(4, 8))
     assert losses == plain_losses  # bit-identical training
     assert final["psnr"] == plain_final["psnr"] and final["ssim"] == plain_final["ssim"]
-    assert BlurField.__dict__["degrade"] is degrade  # detach() restored the class
+    assert BlurField.__dict__["blur"] is blur  # detach() restored the class
 
     totals, split = recorder.totals(), recorder.split()
     for category in ("rasterization", "blur_field", "kernels", "data"):

@@ -254,9 +254,10 @@ def test_lite_size_is_smaller_and_explicit_widths_win():
 def test_shared_dict_hooks():
     f = field(mask_reg_weight=0.001)
     groups = f.get_param_groups({"means": []})
-    assert set(groups) == {"means", "blur_field", "blur_view_kernels"}
-    assert len(groups["blur_field"]) + len(groups["blur_view_kernels"]) == len(list(f.parameters()))
-    paper = field(mask_reg_weight=0.001, view_kernels=False).get_param_groups({})
+    assert set(groups) == {"means", "blur_field", "blur_view_kernels", "blur_defocus"}
+    owned = [p for g in ("blur_field", "blur_view_kernels", "blur_defocus") for p in groups[g]]
+    assert len(owned) == len({id(p) for p in owned}) == len(list(f.parameters()))  # each parameter in one group
+    paper = field(mask_reg_weight=0.001, view_kernels=False, thin_lens=False).get_param_groups({})
     assert set(paper) == {"blur_field"}
     mask = torch.full((1, 1, 4, 4), 0.5)
     losses = f.get_loss_dict({}, mask)
@@ -562,7 +563,7 @@ def test_view_kernels_give_each_view_its_own_kernel():
 
 
 def test_view_kernels_train_only_the_drawn_views_in_their_own_group():
-    f = field(view_kernels=True)
+    f = field(view_kernels=True, thin_lens=False)  # the thin lens has its own group (tests/test_thin_lens.py)
     groups = f.get_param_groups({})
     assert set(groups) == {"blur_field", "blur_view_kernels"}
     assert len(groups["blur_field"]) + len(groups["blur_view_kernels"]) == len(list(f.parameters()))
@@ -583,7 +584,7 @@ def test_view_kernels_train_only_the_drawn_views_in_their_own_group():
 def test_view_mode_has_no_feature_network_and_blurs_by_one_kernel_per_view():
     """Mode "view": only per-view tables (all in the blur_view_kernels group), no MAAN; its expanded kernels are
     applied as a convolution that equals the per-pixel application of the same kernel everywhere."""
-    f = field(mode="view")
+    f = field(mode="view", thin_lens=False)
     assert f.mcf is None and f.mca is None and not f.uses_depth
     assert set(f.get_param_groups({})) == {"blur_view_kernels"}
     assert num_params(f) == sum(NUM_VIEWS * k * k for k in (5, 9, 17))  # kernels only: the mask is 1

@@ -45,10 +45,10 @@ def make_variant(out: Path, variant: str) -> Path:
 
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory) -> Dict[str, Path]:
-    """motion, mixres and sharp variants, and ``partly_sharp``: the motion scene with three training views replaced
-    by their sharp twins and marked ``degraded: false`` in degradation.json (read-only)."""
+    """motion, defocus, mixres and sharp variants, and ``partly_sharp``: the motion scene with three training views
+    replaced by their sharp twins and marked ``degraded: false`` in degradation.json (read-only)."""
     root = tmp_path_factory.mktemp("blur_scenes")
-    out = {name: make_variant(root / name, name) for name in ("motion", "mixres", "sharp")}
+    out = {name: make_variant(root / name, name) for name in ("motion", "defocus", "mixres", "sharp")}
     partly = Path(shutil.copytree(out["motion"], root / "partly_sharp"))
     doc = json.loads((partly / "degradation.json").read_text())
     for name in SHARP_TRAIN_VIEWS:
@@ -213,27 +213,59 @@ def build(metadata, n: int = 4, **config):
 
 
 @pytest.mark.parametrize(
-    "degradation, degradations, field, depth, resolution",
+    "degradation, degradations, field, depth, resolution, lens",
     [
-        ("auto", records("motion"), True, True, False),
-        ("auto", records("defocus"), True, True, False),
-        ("auto", records("sharp"), False, False, False),
-        ("auto", records("mixres"), False, False, True),
-        ("auto", None, True, True, False),  # nothing known: blur field, any blur
-        ("sharp", records("motion"), False, False, False),
-        ("motion", records("sharp"), False, False, False),  # images the records call undegraded stay sharp
-        ("motion", None, True, True, False),
-        ("mixres", None, True, False, False),  # resolution loss of unknown factor: the field learns it, RGB only
+        ("auto", records("motion"), True, True, False, False),
+        ("auto", records("defocus"), True, True, False, True),
+        ("auto", records("sharp"), False, False, False, False),
+        ("auto", records("mixres"), False, False, True, False),
+        ("auto", None, True, True, False, True),  # nothing known: blur field, any blur
+        ("sharp", records("motion"), False, False, False, False),
+        ("motion", records("sharp"), False, False, False, False),  # images the records call undegraded stay sharp
+        ("motion", None, True, True, False, False),
+        ("defocus", None, True, True, False, True),
+        ("mixres", None, True, False, False, False),  # resolution loss of unknown factor: the field learns it
     ],
 )
-def test_modules_follow_the_profiles(degradation, degradations, field, depth, resolution):
+def test_modules_follow_the_profiles(degradation, degradations, field, depth, resolution, lens):
     metadata = None if degradations is None else {"degradations": degradations}
     model = build(metadata, degradation=degradation)
     assert (model.blur_field is not None) == field
     assert (model.blur_field is not None and model.blur_field.uses_depth) == depth
     assert (model.resolution_model is not None) == resolution
+    assert (model.blur_field is not None and model.blur_field.thin_lens is not None) == lens
     groups = model.get_param_groups()
     assert ("blur_field" in groups) == field and ("resolution_model" in groups) == resolution
+    assert ("blur_defocus" in groups) == lens
+
+
+@pytest.mark.parametrize("mode", ["full", "view"])
+def test_thin_lens_blurs_defocused_images_only_and_learns(mode):
+    """Views 0-1 defocused, 2-3 motion-blurred: the lens runs (and gets gradients) for views 0-1 only, before the
+    field, and its depth-driven blur is part of the simulated image."""
+    metadata = {"degradations": records("defocus", 2) + records("motion", 2)}
+    model = build(metadata, blur_field=BlurFieldConfig(mode=mode, warmup=0, thin_lens_initial_aperture=20.0))
+    model.train()
+    model.optimizers = None
+    lens = model.blur_field.thin_lens
+    lens_calls: List[tuple] = []
+    handle = lens.register_forward_hook(lambda _m, inputs, _o: lens_calls.append(tuple(inputs[1].tolist())))
+    for view in (0, 2):
+        camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)
+        camera.metadata = {"cam_idx": view}
+        model.step = 5
+        outputs = model.get_outputs(camera)
+        assert outputs["depth"] is not None or (mode == "view" and view == 2)  # the lens needs depth, view mode not
+        lens.zero_grad()
+        (outputs["rgb"] - 0.5).abs().mean().backward()
+        if view == 0:
+            assert lens.log_aperture.grad is not None and float(lens.log_aperture.grad.abs()) > 0
+            assert float(lens.inverse_focus.grad[0].abs()) > 0 and float(lens.inverse_focus.grad[1]) == 0
+        else:
+            assert lens.log_aperture.grad is None or float(lens.log_aperture.grad.abs()) == 0
+    handle.remove()
+    assert lens_calls == [(0,)]
+    assert lens.focus_initialised.tolist() == [True, False, False, False]
 
 
 def test_records_must_match_the_training_images():
@@ -261,9 +293,9 @@ def test_hpko_scale_follows_the_current_render_downscale():
     assert model.hpko_state["kernel_size"] == 17
 
 
-@pytest.mark.parametrize("mode", ["full", "view"])
-def test_eval_rgb_is_the_sharp_render_and_viewer_outputs_are_added(mode):
-    model = build({"degradations": records("motion")}, blur_field=BlurFieldConfig(mode=mode))
+@pytest.mark.parametrize("mode, kind", [("full", "motion"), ("view", "motion"), ("view", "defocus")])
+def test_eval_rgb_is_the_sharp_render_and_viewer_outputs_are_added(mode, kind):
+    model = build({"degradations": records(kind)}, blur_field=BlurFieldConfig(mode=mode))
     model.set_train_camera_centres(torch.stack([look_from([2.0, 0.5, 1.0]), look_from([-2.0, 0.5, 1.0])] * 2))
     camera = make_camera(look_from([-1.9, 0.5, 1.1]), width=64, height=48)
     model.eval()
@@ -388,3 +420,24 @@ def test_ns_train_gsmsdr_with_the_view_mode_field(scenes, tmp_path):
     # no mask, so no mask regulariser (logged for the other modes: see the ablation-switch test above)
     assert "Train Loss Dict/blur_mask_reg" not in tags
     assert tags["Train Loss"] and all(math.isfinite(v) for v in tags["Train Loss"])
+
+
+def test_ns_train_on_a_defocus_scene_trains_the_thin_lens(scenes, tmp_path):
+    """A defocused scene through ns-train: the thin lens is in the checkpoint with its own optimizer, its
+    parameters moved from their start, and every view's focus was initialised from its rendered depth."""
+    args = ["gsmsdr-lite", "--data", scenes["defocus"], "--output-dir", tmp_path / "outputs", "--timestamp", "lens",
+            "--max-num-iterations", 30, "--steps-per-save", 30, *TRAIN_FLAGS, *BLUR_FLAGS,
+            "--pipeline.model.blur-field.mode", "view"]  # fmt: skip
+    proc = run_cli("ns-train", args, cwd=tmp_path)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-5000:]
+    run_dir = tmp_path / "outputs" / "defocus" / "gsmsdr-lite" / "lens"
+    checkpoint = torch.load(run_dir / "nerfstudio_models" / f"step-{29:09d}.ckpt", map_location="cpu")
+    state = checkpoint["pipeline"]
+    prefix = "_model.blur_field.thin_lens."
+    assert {k[len(prefix):] for k in state if k.startswith(prefix)} == {
+        "log_aperture", "view_log_aperture", "inverse_focus", "focus_initialised"}  # fmt: skip
+    assert "blur_defocus" in checkpoint["optimizers"]
+    assert float(state[prefix + "log_aperture"]) != 0.0  # trained away from log(initial aperture 1)
+    seen = state[prefix + "focus_initialised"]
+    assert seen.any() and torch.isfinite(state[prefix + "inverse_focus"]).all()
+    assert (state[prefix + "inverse_focus"][seen] > 0).all()  # 1 / depth of something in front of the camera

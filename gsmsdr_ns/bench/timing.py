@@ -4,21 +4,21 @@
 
 * ``rasterization``: ``model._rasterize`` (parameter activation, projection, SH, tile sorting, pixel kernel), forward
   and backward;
-* ``blur_field``: the blur field module (MAAN features, MCA, HPKO heads: kernel and mask prediction), forward and
-  backward;
-* ``kernels``: kernel application (``BlurField.degrade``: ``apply_pixel_kernels`` and the mask blend) and the
+* ``blur_field``: the blur field module (MAAN features, MCA, HPKO heads: kernel and mask prediction; the thin
+  lens's disk kernels), forward and backward;
+* ``kernels``: kernel application (``BlurField.blur``: ``apply_pixel_kernels`` in linear light) and the
   resolution-loss model, forward and backward;
 * ``densification``: the densification strategy's hooks (``strategy.step_pre_backward`` /
   ``step_post_backward``: gradient statistics, split / duplicate / prune, optimizer state surgery);
 * ``data``: ``datamanager.next_train`` (picking and copying the training image);
-* ``other``: everything else in the step: the camera pose, background and composite, the losses (L1 + D-SSIM, mask
-  regulariser) and their backward, gradient bookkeeping between components, ``zero_grad``, the optimizer and
-  scheduler steps and the training callbacks. It is the step's wall time minus the five categories above.
+* ``other``: everything else in the step: the camera pose, background and composite, the mask blend, the losses
+  (L1 + D-SSIM, mask regulariser) and their backward, gradient bookkeeping between components, ``zero_grad``, the
+  optimizer and scheduler steps and the training callbacks. It is the step's wall time minus the five categories above.
 
 How it attaches (nothing in the model is edited): instance attributes shadow ``model._rasterize``,
-``datamanager.next_train`` and the strategy's two hooks; forward pre/post hooks time the ``blur_field`` and
-``resolution_model`` modules; ``BlurField.degrade`` (a staticmethod) is wrapped on the class while the recorder is
-attached. ``detach()`` restores all of it.
+``datamanager.next_train`` and the strategy's two hooks; forward pre/post hooks time the ``blur_field`` (and its
+``thin_lens``) and ``resolution_model`` modules; ``BlurField.blur`` (a staticmethod) is wrapped on the class while
+the recorder is attached. ``detach()`` restores all of it.
 
 Backward time: the forward wrappers register tensor hooks at each component's boundary. A hook on a component's
 output fires when autograd starts that component's backward (the gradient with respect to the output is ready);
@@ -135,11 +135,16 @@ class TimingRecorder:
         if strategy is not None:
             self._wrap_method(strategy, "step_pre_backward", "densification", backward=False)
             self._wrap_method(strategy, "step_post_backward", "densification", backward=False)
-        for name, category in (("blur_field", "blur_field"), ("resolution_model", "kernels")):
-            module = getattr(model, name, None)
+        blur_field = getattr(model, "blur_field", None)
+        modules = (
+            (blur_field, "blur_field"),
+            (getattr(blur_field, "thin_lens", None), "blur_field"),  # called by the model, not inside the field
+            (getattr(model, "resolution_model", None), "kernels"),
+        )
+        for module, category in modules:
             if isinstance(module, torch.nn.Module):
                 self._hook_module(module, category)
-        self._wrap_degrade()
+        self._wrap_blur()
         return self
 
     def detach(self) -> None:
@@ -199,15 +204,16 @@ class TimingRecorder:
         handles = [module.register_forward_pre_hook(pre_hook), module.register_forward_hook(post_hook)]
         self._restore.append(lambda: [h.remove() for h in handles])
 
-    def _wrap_degrade(self) -> None:
-        """``BlurField.degrade`` is a staticmethod the model calls through the class: wrap it there."""
+    def _wrap_blur(self) -> None:
+        """``BlurField.blur`` (the kernel application, called by ``degrade`` and for the thin lens) is a staticmethod
+        the model calls through the class: wrap it there."""
         from gsmsdr_ns.blur.field import BlurField
 
-        original = BlurField.__dict__["degrade"]  # the staticmethod object
+        original = BlurField.__dict__["blur"]  # the staticmethod object
         function = original.__func__
         recorder = self
 
-        def degrade(*args, **kwargs):
+        def blur(*args, **kwargs):
             if not recorder._active:
                 return function(*args, **kwargs)
             started = recorder._now()
@@ -216,11 +222,11 @@ class TimingRecorder:
             recorder._mark_backward("kernels", out, (args, kwargs))
             return out
 
-        degrade.__doc__ = function.__doc__
-        BlurField.degrade = staticmethod(degrade)  # type: ignore[method-assign]
+        blur.__doc__ = function.__doc__
+        BlurField.blur = staticmethod(blur)  # type: ignore[method-assign]
 
         def restore() -> None:
-            BlurField.degrade = original  # type: ignore[method-assign]
+            BlurField.blur = original  # type: ignore[method-assign]
 
         self._restore.append(restore)
 

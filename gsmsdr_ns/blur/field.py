@@ -28,9 +28,10 @@ from typing import Any, Dict, List, Literal, NamedTuple, Optional, Tuple
 from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 from torch import Tensor, nn
 
+from .defocus import ThinLensDefocus
 from .hpko import HPKOHeads, HPKOScheduler, ViewKernels, check_kernel_sizes
 from .kernels import apply_image_kernels, apply_pixel_kernels
-from .maan import MCA, BAGSFeatures, ContextualFeatures, RGBDFeatures, _check_bchw, check_view_ids
+from .maan import MCA, BAGSFeatures, ContextualFeatures, RGBDFeatures, check_bchw, check_view_ids
 
 __all__ = ["BlurFieldConfig", "BlurField", "BlurFieldDims", "BlurFieldModules"]
 
@@ -115,6 +116,14 @@ class BlurFieldConfig:
     per-pixel kernels: camera shake blurs a whole image along one path, which a per-view kernel captures with few
     parameters; the heads model how the blur varies across the image. Trained in the ``blur_view_kernels``
     optimizer group."""
+    thin_lens: bool = True
+    """Defocused training images (and images nothing is known about) are first blurred by a learnt thin lens:
+    per-pixel disk kernels whose radius follows the rendered depth, ``aperture * |1/d - 1/d_focus|``, with one
+    aperture and focus per view (:class:`~gsmsdr_ns.blur.defocus.ThinLensDefocus`, optimizer group
+    ``blur_defocus``). Motion-blurred and mixed-resolution images never pay for it."""
+    thin_lens_initial_aperture: float = 1.0
+    """Starting aperture: CoC radius in pixels per scene unit of inverse depth (small: the untrained lens barely
+    blurs)."""
     pixel_kernels: bool = True
     """Per-pixel kernel heads (M_blur^s). False: the kernel is the prior plus the per-view kernel only (needs
     ``view_kernels``); the mask heads stay."""
@@ -145,6 +154,8 @@ class BlurFieldConfig:
             raise ValueError(f"invalid blur field widths {dims}")
         if not (self.view_kernels or self.pixel_kernels):
             raise ValueError("a blur field needs pixel_kernels, view_kernels or both")
+        if not self.thin_lens_initial_aperture > 0:
+            raise ValueError(f"thin_lens_initial_aperture must be > 0, got {self.thin_lens_initial_aperture}")
         if not self.kernel_prior_sigma > 0:
             raise ValueError(f"kernel_prior_sigma must be > 0, got {self.kernel_prior_sigma}")
         if dims.pos_channels < 0 or dims.pos_channels % 4:
@@ -202,9 +213,17 @@ class BlurField(nn.Module):
         num_train_views: rows of the view embedding; ``view_ids`` index training views in [0, num_train_views).
         use_depth: False forces an RGB-only feature network (e.g. the degradation profile says depth does not
             matter); None follows ``config.rgbd``. Depth is used only when both allow it.
+        use_thin_lens: False: no training image can be defocused, build no thin lens (``config.thin_lens`` must
+            allow it too).
     """
 
-    def __init__(self, config: BlurFieldConfig, num_train_views: int, use_depth: Optional[bool] = None) -> None:
+    def __init__(
+        self,
+        config: BlurFieldConfig,
+        num_train_views: int,
+        use_depth: Optional[bool] = None,
+        use_thin_lens: bool = True,
+    ) -> None:
         super().__init__()
         self.config = config
         mods, dims = config.modules, config.dims
@@ -214,6 +233,9 @@ class BlurField(nn.Module):
         self.mcf: Optional[ContextualFeatures] = None
         self.mca: Optional[MCA] = None
         self.heads: nn.Module
+        self.thin_lens: Optional[ThinLensDefocus] = None
+        if config.thin_lens and use_thin_lens:
+            self.thin_lens = ThinLensDefocus(num_train_views, config.thin_lens_initial_aperture)
         if config.mode == "view":
             self.heads = ViewKernels(
                 num_train_views,
@@ -276,7 +298,7 @@ class BlurField(nn.Module):
             mask: [B, 1, H, W] in (0, 1).
         """
         if self.mcf is None:
-            _check_bchw(render, "render", 3)
+            check_bchw(render, "render", 3)
             check_view_ids(view_ids, render.shape[0], self.num_train_views)
             return self.heads(view_ids, scale, render.shape[-2], render.shape[-1])
         return self.heads(self.features(render, depth, view_ids), scale, view_ids)
@@ -335,14 +357,17 @@ class BlurField(nn.Module):
     def get_param_groups(self, param_groups: Dict[str, List[nn.Parameter]]) -> Dict[str, List[nn.Parameter]]:
         """Add the ``blur_field`` group (BAGS trains it with Adam, lr 5e-4 constant) and, with per-view kernels,
         ``blur_view_kernels`` (each view's table gets a gradient only when that view is drawn: it needs a higher
-        learning rate)."""
+        learning rate) and, with a thin lens, ``blur_defocus``."""
         view = self.heads.per_view_parameters()
-        view_ids = {id(p) for p in view}
-        shared = [p for p in self.parameters() if id(p) not in view_ids]
+        lens = list(self.thin_lens.parameters()) if self.thin_lens is not None else []
+        own_group = {id(p) for p in view + lens}
+        shared = [p for p in self.parameters() if id(p) not in own_group]
         if shared:  # none in mode "view"
             param_groups["blur_field"] = shared
         if view:
             param_groups["blur_view_kernels"] = view
+        if lens:
+            param_groups["blur_defocus"] = lens
         return param_groups
 
     def parameters_for_scale(self, scale: int) -> List[nn.Parameter]:

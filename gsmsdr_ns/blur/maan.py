@@ -34,10 +34,12 @@ __all__ = [
     "ContextualFeatures",
     "positional_encoding_2d",
     "normalize_depth",
+    "check_bchw",
 ]
 
 
-def _check_bchw(x: Tensor, name: str, channels: Optional[int] = None) -> None:
+def check_bchw(x: Tensor, name: str, channels: Optional[int] = None) -> None:
+    """Raise a ValueError naming ``name`` unless x is [B, C, H, W] (with ``channels`` channels when given)."""
     if x.dim() != 4 or (channels is not None and x.shape[1] != channels):
         want = f"[B, {channels if channels is not None else 'C'}, H, W]"
         raise ValueError(f"{name} must have shape {want}, got {list(x.shape)}")
@@ -77,7 +79,7 @@ def normalize_depth(depth: Tensor, eps: float = 1e-6) -> Tensor:
     Returns:
         [B, 1, H, W]; a constant depth map becomes all zeros.
     """
-    _check_bchw(depth, "depth", 1)
+    check_bchw(depth, "depth", 1)
     d = torch.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0)
     lo = d.amin(dim=(1, 2, 3), keepdim=True)
     hi = d.amax(dim=(1, 2, 3), keepdim=True)
@@ -229,7 +231,7 @@ class RGBDFeatures(nn.Module):
         self.fans = nn.Sequential(*[FAN(n, gaka, safm, scale_init) for _ in range(num_fans)])
 
     def forward(self, x: Tensor) -> Tensor:
-        _check_bchw(x, "RGB-D input", self.in_ch)
+        check_bchw(x, "RGB-D input", self.in_ch)
         return self.fans(self.sfe(x))
 
 
@@ -267,7 +269,7 @@ class BAGSFeatures(nn.Module):
         )
 
     def forward(self, x: Tensor) -> Tensor:
-        _check_bchw(x, "RGB-D input", self.in_ch)
+        check_bchw(x, "RGB-D input", self.in_ch)
         return self.net(x)
 
 
@@ -312,14 +314,14 @@ class ContextualFeatures(nn.Module):
         self.out_channels = view_dim + pos_channels + rgbd.out_ch
 
     def forward(self, render: Tensor, depth: Optional[Tensor], view_ids: Tensor) -> Tensor:
-        _check_bchw(render, "render", 3)
+        check_bchw(render, "render", 3)
         B, _, H, W = render.shape
         check_view_ids(view_ids, B, self.num_views)
         x = render.detach() if self.detach_inputs else render
         if self.uses_depth:
             if depth is None:
                 raise ValueError("this blur field uses depth (rgbd on): pass depth [B, 1, H, W]")
-            _check_bchw(depth, "depth", 1)
+            check_bchw(depth, "depth", 1)
             if depth.shape[-2:] != render.shape[-2:] or depth.shape[0] != B:
                 raise ValueError(f"depth {list(depth.shape)} does not match render {list(render.shape)}")
             d = depth.detach() if self.detach_inputs else depth

@@ -24,6 +24,7 @@ BUILTIN_PRESETS: dict[str, DegradeConfig] = {
     "motion-mild": DegradeConfig(effects=("motion",), motion=MotionConfig(min_blur_px=6.0, max_blur_px=12.0)),
     "motion-strong": DegradeConfig(effects=("motion",), motion=MotionConfig(min_blur_px=16.0, max_blur_px=32.0)),
     "defocus": DegradeConfig(effects=("defocus",), defocus=DefocusConfig(min_coc_px=8.0, max_coc_px=14.0)),
+    "defocus-strong": DegradeConfig(effects=("defocus",), defocus=DefocusConfig(min_coc_px=16.0, max_coc_px=32.0)),
     "mixres": DegradeConfig(effects=("mixres",)),
     "mixed": DegradeConfig(effects=("motion", "defocus", "mixres"), assignment="one_per_image"),
 }
@@ -34,6 +35,7 @@ VARIANTS: dict[str, str] = {
     "motion": "motion-mild",
     "motion-strong": "motion-strong",
     "defocus": "defocus",
+    "defocus-strong": "defocus-strong",
     "mixres": "mixres",
     "mixed": "mixed",
 }

@@ -48,10 +48,14 @@ class DegradationPlan(NamedTuple):
     """The blur field reads the rendered depth (the rasterizer must produce it)."""
     resolution_factor: float = 1.0
     """Effective resolution-loss factor at the current render downscale; > 1: the resolution model runs."""
+    thin_lens: bool = False
+    """The image may be defocused: the blur field's thin lens blurs the render first (needs depth)."""
+    render_downscale: int = 1
+    """The render's downscale factor (the thin lens's aperture is in full-resolution pixels)."""
 
     @property
     def needs_depth(self) -> bool:
-        return self.blur_scale is not None and self.blur_uses_depth
+        return self.blur_scale is not None and (self.blur_uses_depth or self.thin_lens)
 
     @property
     def is_plain(self) -> bool:

@@ -48,8 +48,9 @@ def _warmup_decay(lr_final: float, max_steps: int) -> ExponentialDecaySchedulerC
 
 def gsmsdr_optimizers(max_steps: int = MAX_STEPS) -> dict:
     """Per-parameter-group optimizers (keys match ``GSMSDRModel.get_param_groups``): splatfacto's for the Gaussians,
-    constant-rate Adam for the blur field (5e-4, BAGS) and the resolution model's residual kernels (1e-4). Groups a
-    scene does not build (a sharp scene has no blur field) are simply unused."""
+    constant-rate Adam for the blur field (5e-4, BAGS), its per-view kernels (3e-2) and thin lens (1e-2) and the
+    resolution model's residual kernels (1e-4). Groups a scene does not build (a sharp scene has no blur field) are
+    simply unused."""
     return {
         "means": {
             "optimizer": _adam(1.6e-4),
@@ -64,6 +65,7 @@ def gsmsdr_optimizers(max_steps: int = MAX_STEPS) -> dict:
         "bilateral_grid": {"optimizer": _adam(2e-3), "scheduler": _warmup_decay(1e-4, max_steps)},
         "blur_field": {"optimizer": _adam(5e-4, eps=1e-8), "scheduler": None},
         "blur_view_kernels": {"optimizer": _adam(3e-2, eps=1e-8), "scheduler": None},
+        "blur_defocus": {"optimizer": _adam(1e-2, eps=1e-8), "scheduler": None},
         "resolution_model": {"optimizer": _adam(1e-4, eps=1e-8), "scheduler": None},
     }
 

@@ -213,7 +213,11 @@ class GSMSDRModel(SplatfactoModel):
             use_depth = any(p.needs_depth for p in self.profiles)
             field_config = self.config.blur_field.for_schedule(self.config.num_downscales)
             with torch.random.fork_rng(devices=[]):
-                self.blur_field = field_config.setup(num_train_views=self.num_train_data, use_depth=use_depth)
+                self.blur_field = field_config.setup(
+                    num_train_views=self.num_train_data,
+                    use_depth=use_depth,
+                    use_thin_lens=any(p.defocus for p in self.profiles),
+                )
             self.hpko = field_config.make_scheduler(
                 num_downscales=self.config.num_downscales, resolution_schedule=self.config.resolution_schedule
             )
@@ -232,7 +236,8 @@ class GSMSDRModel(SplatfactoModel):
         parts = []
         if self.blur_field is not None:
             depth = "RGB-D" if self.blur_field.uses_depth else "RGB"
-            parts.append(f"blur field ({self.config.blur_field.mode}, {depth}, kernels {self.hpko.kernel_sizes})")
+            lens = ", thin lens for defocus" if self.blur_field.thin_lens is not None else ""
+            parts.append(f"blur field ({self.config.blur_field.mode}, {depth}, kernels {self.hpko.kernel_sizes}{lens})")
         if self.resolution_model is not None:
             parts.append("resolution-loss model")
         return " + ".join(parts) or "plain splatfacto (no degradation model)"
@@ -380,7 +385,8 @@ class GSMSDRModel(SplatfactoModel):
         if profile.needs_resolution_model and self.resolution_model is not None:
             factor = effective_factor(profile.mixres_factor, downscale)
         uses_depth = self.blur_field is not None and self.blur_field.uses_depth
-        return DegradationPlan(view_id, blur_scale, uses_depth, factor)
+        thin_lens = profile.defocus and self.blur_field is not None and self.blur_field.thin_lens is not None
+        return DegradationPlan(view_id, blur_scale, uses_depth, factor, thin_lens, downscale)
 
     def _simulate_degradation(
         self, rgb: Tensor, depth: Optional[Tensor], plan: DegradationPlan
@@ -395,9 +401,16 @@ class GSMSDRModel(SplatfactoModel):
         outputs: Dict[str, Tensor] = {"rgb_sharp": rgb}
         if plan.blur_scale is not None:
             assert self.blur_field is not None
+            linear_light = self.blur_field.config.linear_light
+            if plan.thin_lens:
+                assert self.blur_field.thin_lens is not None and depth is not None
+                lens = self.blur_field.thin_lens(
+                    depth.permute(2, 0, 1)[None], view_ids, plan.blur_scale.kernel_size, 1.0 / plan.render_downscale
+                )
+                image = BlurField.blur(image, lens, linear_light)
             depth_in = depth.permute(2, 0, 1)[None] if plan.blur_uses_depth else None
             kernels, mask = self.blur_field(image, depth_in, view_ids, plan.blur_scale.scale)
-            image = BlurField.degrade(image, kernels, mask, self.blur_field.config.linear_light)
+            image = BlurField.degrade(image, kernels, mask, linear_light)
             outputs["blur_mask"] = mask[0].permute(1, 2, 0)
         if plan.resolution_factor > 1.0:
             assert self.resolution_model is not None
@@ -417,7 +430,8 @@ class GSMSDRModel(SplatfactoModel):
         (:func:`coarsen_kernels`) so the simulated blur keeps its extent. Results are enlarged back to the render's
         size. ``degraded`` [H, W, 3] = mask * blurred + (1 - mask) * render; ``kernel_size`` [H, W, 1] = the
         kernels' RMS blur radius in pixels of the render, times the mask (0 where the field keeps the render
-        sharp); ``blur_mask`` [H, W, 1].
+        sharp); ``blur_mask`` [H, W, 1]. When that training view is defocused, its thin lens blurs the render
+        first (``render`` above is then the lens's blur) and its RMS radius is added in quadrature.
         """
         assert self.blur_field is not None and self.hpko is not None
         height, width = rgb.shape[:2]
@@ -426,22 +440,31 @@ class GSMSDRModel(SplatfactoModel):
         small = (max(1, height // d), max(1, width // d))
         image = rgb.permute(2, 0, 1)[None]  # [1, 3, H, W]
         low = image if d == 1 else F.interpolate(image, size=small, mode="area")
+        centre = camera.camera_to_worlds.reshape(-1, 3, 4)[0, :3, 3]
+        view_id = nearest_view(self.train_camera_centres, centre)
+        view_ids = torch.tensor([view_id], device=image.device)
+        lens = self.blur_field.thin_lens if self.profiles[view_id].defocus else None
         low_depth = None
-        if self.blur_field.uses_depth:
+        if self.blur_field.uses_depth or lens is not None:
             depth_in = depth.permute(2, 0, 1)[None]
             low_depth = depth_in if d == 1 else F.interpolate(depth_in, size=small, mode="area")
-        centre = camera.camera_to_worlds.reshape(-1, 3, 4)[0, :3, 3]
-        view_ids = torch.tensor([nearest_view(self.train_camera_centres, centre)], device=image.device)
-        kernels, mask = self.blur_field(low, low_depth, view_ids, info.scale)
+        linear_light = self.blur_field.config.linear_light
+        if lens is not None:  # as in training: the lens first, then the field
+            lens_kernels = lens(low_depth, view_ids, info.kernel_size * info.downsample // d | 1, 1.0 / d)
+            low = BlurField.blur(low, lens_kernels, linear_light)
+        kernels, mask = self.blur_field(low, low_depth if self.blur_field.uses_depth else None, view_ids, info.scale)
         extent = kernel_spread(kernels) * info.downsample * mask  # kernel taps are pixels at the scale's resolution
+        if lens is not None:  # RMS radii of successive blurs add in quadrature
+            extent = torch.sqrt(extent**2 + (kernel_spread(lens_kernels) * d) ** 2)
         coarse = coarsen_kernels(kernels, d // info.downsample)
-        blurred = BlurField.blur(low, coarse, self.blur_field.config.linear_light)
+        blurred = BlurField.blur(low, coarse, linear_light)
 
         def enlarge(x: Tensor) -> Tensor:
             return x if d == 1 else F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False)
 
         mask_full = enlarge(mask)
-        degraded = (mask_full * enlarge(blurred) + (1.0 - mask_full) * image).clamp(0.0, 1.0)
+        base = image if lens is None else enlarge(low)  # what the field blends with: the render, or its lens blur
+        degraded = (mask_full * enlarge(blurred) + (1.0 - mask_full) * base).clamp(0.0, 1.0)
         return {
             "degraded": degraded[0].permute(1, 2, 0),
             "kernel_size": enlarge(extent)[0].permute(1, 2, 0),

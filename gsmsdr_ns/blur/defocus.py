@@ -1,0 +1,129 @@
+"""Thin-lens defocus from the rendered depth: per-pixel disk kernels with a learnt aperture and focus per view.
+
+A thin lens focused at distance d_f images a point at depth d as a disk whose radius, in pixels, is proportional
+to ``|1/d - 1/d_f|`` (``gsmsdr_ns.degrade.kernels.defocus_radius``). For a defocused training photo the blur of
+every pixel therefore follows from the rendered depth and two numbers per photo: the aperture (the radius per
+unit of inverse depth) and the focus (an inverse depth). Learning those two numbers from every pixel of the photo
+is far better posed than learning a free kernel per pixel, which is what the feature network would have to do.
+
+Pure functions first (shapes in the docstrings), then :class:`ThinLensDefocus`, the learnable per-view lens.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["soft_disk_kernels", "thin_lens_radius", "ThinLensDefocus"]
+
+
+def soft_disk_kernels(radius: Tensor, kernel_size: int, softness: float = 0.25) -> Tensor:
+    """Per-pixel disk kernels with a soft edge.
+
+    A tap at distance r_k from the centre gets weight ``sigmoid((radius - r_k) / softness)``, normalised to sum to
+    1: the pixel's area coverage by the disk (which ramps from 1 to 0 between r_k = radius - 0.5 and radius + 0.5,
+    as the degradation simulator's ``disk_kernel``) smoothed so that every weight is differentiable in the radius.
+    Radius 0 is nearly the identity (the centre tap keeps ~0.85 with the default softness); radii beyond the
+    window are truncated to it.
+
+    Args:
+        radius: [B, 1, H, W] disk radius in pixels, >= 0.
+        kernel_size: odd window size K.
+        softness: edge width in pixels (> 0).
+    Returns:
+        [B, K*K, H, W] weights (row-major window index, as ``apply_pixel_kernels``), summing to 1 over dim 1.
+    """
+    if kernel_size < 1 or kernel_size % 2 == 0:
+        raise ValueError(f"kernel_size must be a positive odd integer, got {kernel_size}")
+    if not softness > 0:
+        raise ValueError(f"softness must be > 0, got {softness}")
+    if radius.dim() != 4 or radius.shape[1] != 1:
+        raise ValueError(f"radius must be [B, 1, H, W], got {list(radius.shape)}")
+    half = kernel_size // 2
+    offsets = torch.arange(kernel_size, device=radius.device, dtype=radius.dtype) - half
+    tap_distance = torch.sqrt(offsets[:, None] ** 2 + offsets[None, :] ** 2).reshape(1, -1, 1, 1)
+    weights = torch.sigmoid((radius - tap_distance) / softness)
+    return weights / weights.sum(dim=1, keepdim=True)
+
+
+def thin_lens_radius(inverse_depth: Tensor, aperture: Tensor, inverse_focus: Tensor) -> Tensor:
+    """Circle-of-confusion radius of a thin lens: ``aperture * |1/d - 1/d_f|``.
+
+    Args:
+        inverse_depth: [B, 1, H, W] 1/d.
+        aperture: [B] radius in pixels per unit of inverse depth (the lens's f_px * A / 2).
+        inverse_focus: [B] 1/d_f.
+    Returns:
+        [B, 1, H, W] radius in pixels.
+    """
+    return aperture[:, None, None, None] * (inverse_depth - inverse_focus[:, None, None, None]).abs()
+
+
+class ThinLensDefocus(nn.Module):
+    """A learnable thin lens per training view: ``forward(depth, view_ids, kernel_size, pixel_scale)`` -> kernels.
+
+    Parameters: ``log_aperture`` (one, shared: a capture is usually shot with one lens setting, so every photo's
+    gradient trains it), ``view_log_aperture`` [V] (each photo's deviation from it, starts at 0) and
+    ``inverse_focus`` [V]. A view's focus starts, the first time the view is seen, at the median inverse depth of
+    its render (focus somewhere inside the scene), recorded in the ``focus_initialised`` buffer so a checkpoint
+    keeps it. The aperture starts at ``initial_aperture`` (small: an untrained lens barely blurs).
+
+    Depth units are the scene's (nerfstudio rescales poses), so the aperture is learnt in pixels at the full
+    training resolution per scene unit of inverse depth; ``pixel_scale`` (render width / full width) converts.
+    """
+
+    def __init__(self, num_views: int, initial_aperture: float = 1.0, softness: float = 0.25) -> None:
+        super().__init__()
+        if num_views < 1:
+            raise ValueError(f"num_views must be >= 1, got {num_views}")
+        if not initial_aperture > 0:
+            raise ValueError(f"initial_aperture must be > 0, got {initial_aperture}")
+        self.softness = float(softness)
+        self.log_aperture = nn.Parameter(torch.tensor(math.log(initial_aperture)))
+        self.view_log_aperture = nn.Parameter(torch.zeros(num_views))
+        self.inverse_focus = nn.Parameter(torch.zeros(num_views))
+        self.register_buffer("focus_initialised", torch.zeros(num_views, dtype=torch.bool))
+
+    @property
+    def num_views(self) -> int:
+        return self.view_log_aperture.shape[0]
+
+    def aperture(self, view_ids: Tensor) -> Tensor:
+        """[B] aperture (pixels at full resolution per unit of inverse depth) of ``view_ids`` [B]."""
+        return torch.exp(self.log_aperture + self.view_log_aperture[view_ids.long()])
+
+    def radius(self, depth: Tensor, view_ids: Tensor, pixel_scale: float = 1.0) -> Tensor:
+        """[B, 1, H, W] circle-of-confusion radius in render pixels for rendered ``depth`` [B, 1, H, W] (detached:
+        the lens learns from the depth, the depth is not moved to explain the blur)."""
+        if depth.dim() != 4 or depth.shape[1] != 1:
+            raise ValueError(f"depth must be [B, 1, H, W], got {list(depth.shape)}")
+        ids = view_ids.long()
+        if ids.shape != depth.shape[:1] or (ids < 0).any() or (ids >= self.num_views).any():
+            raise ValueError(f"view_ids must be [{depth.shape[0]}] in [0, {self.num_views}), got {view_ids.tolist()}")
+        inverse_depth = 1.0 / depth.detach().float().clamp_min(1e-6)
+        with torch.no_grad():
+            medians = inverse_depth.flatten(1).nanmedian(dim=1).values
+            new = ~self.focus_initialised[ids] & torch.isfinite(medians)  # a non-finite render teaches nothing
+            if new.any():
+                self.inverse_focus[ids[new]] = medians[new].to(self.inverse_focus.dtype)
+                self.focus_initialised[ids[new]] = True
+        radius = thin_lens_radius(inverse_depth, self.aperture(ids), self.inverse_focus[ids])
+        return radius * float(pixel_scale)
+
+    def forward(self, depth: Tensor, view_ids: Tensor, max_kernel_size: int, pixel_scale: float = 1.0) -> Tensor:
+        """[B, K*K, H, W] defocus kernels (sum to 1) for rendered ``depth`` [B, 1, H, W] of ``view_ids`` [B].
+
+        K is the smallest odd window that holds the largest disk with its soft edge, at most ``max_kernel_size``
+        (radii beyond it are truncated): a lens that barely blurs costs a 5x5 kernel, not the scale's full one.
+        """
+        if max_kernel_size < 1 or max_kernel_size % 2 == 0:
+            raise ValueError(f"max_kernel_size must be a positive odd integer, got {max_kernel_size}")
+        radius = self.radius(depth, view_ids, pixel_scale).clamp(max=max_kernel_size // 2)
+        largest = float(radius.detach().max())
+        # a NaN radius (NaN depth) flows on into the loss, where training stops naming the step
+        half = max_kernel_size // 2
+        if not math.isnan(largest):
+            half = min(half, math.ceil(largest + 6.0 * self.softness))
+        return soft_disk_kernels(radius, 2 * half + 1, self.softness)

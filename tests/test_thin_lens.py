@@ -1,0 +1,165 @@
+"""The blur field's thin lens (gsmsdr_ns.blur.defocus): disk kernels, the CoC formula, the learnable per-view lens.
+
+No nerfstudio here: the core imports and trains on its own.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from gsmsdr_ns.blur.defocus import ThinLensDefocus, soft_disk_kernels, thin_lens_radius
+from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
+from gsmsdr_ns.blur.kernels import apply_pixel_kernels
+from gsmsdr_ns.degrade.kernels import defocus_radius
+from gsmsdr_ns.plugin.degradation_plan import kernel_spread
+
+
+def test_soft_disk_kernels_sum_to_one_and_grow_with_the_radius():
+    radius = torch.tensor([0.0, 1.0, 2.0, 3.0]).reshape(1, 1, 1, 4)
+    k = soft_disk_kernels(radius, 9)
+    assert k.shape == (1, 81, 1, 4)
+    torch.testing.assert_close(k.sum(1), torch.ones(1, 1, 4))
+    assert float(k[0, 40, 0, 0]) > 0.8  # radius 0: nearly the identity (centre tap)
+    spread = kernel_spread(k)[0, 0, 0]
+    assert all(float(a) < float(b) for a, b in zip(spread[:-1], spread[1:])), spread
+    # a disk of radius r has an RMS radius of about r / sqrt(2)
+    assert abs(float(spread[3]) - 3.0 / math.sqrt(2.0)) < 0.35, spread
+    # symmetric under flips (a disk)
+    square = k[0, :, 0, 3].reshape(9, 9)
+    torch.testing.assert_close(square, square.flip(0))
+    torch.testing.assert_close(square, square.t())
+
+
+def test_soft_disk_kernels_are_differentiable_in_the_radius_at_zero():
+    radius = torch.zeros(1, 1, 2, 2, requires_grad=True)
+    image = torch.rand(1, 3, 2, 2)
+    image[..., 0, 0] = 1.0
+    out = apply_pixel_kernels(torch.rand(1, 3, 2, 2), soft_disk_kernels(radius, 5))
+    out.square().sum().backward()
+    assert radius.grad is not None and torch.isfinite(radius.grad).all() and radius.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("bad", [dict(kernel_size=4), dict(kernel_size=0), dict(softness=0.0)])
+def test_soft_disk_kernels_reject_bad_arguments(bad):
+    args = {"kernel_size": 5, "softness": 0.15, **bad}
+    with pytest.raises(ValueError):
+        soft_disk_kernels(torch.zeros(1, 1, 2, 2), args["kernel_size"], args["softness"])
+
+
+def test_thin_lens_radius_is_the_degradation_tools_circle_of_confusion():
+    """Same optics as the degradation simulator: aperture = f_px * A / 2 per unit of inverse depth."""
+    depth = torch.linspace(0.5, 20.0, 50).reshape(1, 1, 5, 10)
+    f_px, aperture, focus = 300.0, 0.05, 3.0
+    expected = defocus_radius(depth, f_px, aperture, focus)
+    got = thin_lens_radius(1.0 / depth, torch.tensor([0.5 * f_px * aperture]), torch.tensor([1.0 / focus]))
+    torch.testing.assert_close(got, expected.float())
+
+
+def _depth_ramp(height: int = 32, width: int = 40) -> torch.Tensor:
+    """[1, 1, H, W] depth from 1 (left) to 6 (right): a slanted wall, so the CoC varies across the image."""
+    return torch.linspace(1.0, 6.0, width).expand(height, width)[None, None].clone()
+
+
+def test_focus_starts_at_the_median_inverse_depth_once_and_is_checkpointed():
+    lens = ThinLensDefocus(num_views=3)
+    depth = _depth_ramp()
+    lens.radius(depth, torch.tensor([1]))
+    assert lens.focus_initialised.tolist() == [False, True, False]
+    median = float((1.0 / depth).flatten().median())
+    assert abs(float(lens.inverse_focus.detach()[1]) - median) < 1e-6
+    lens.radius(depth * 2.0, torch.tensor([1]))  # seen before: kept
+    assert abs(float(lens.inverse_focus.detach()[1]) - median) < 1e-6
+    restored = ThinLensDefocus(num_views=3)
+    restored.load_state_dict(lens.state_dict())
+    assert restored.focus_initialised.tolist() == [False, True, False]
+    assert torch.equal(restored.inverse_focus.detach(), lens.inverse_focus.detach())
+
+
+def test_kernel_window_follows_the_largest_disk():
+    lens = ThinLensDefocus(num_views=1, initial_aperture=0.01)
+    depth = _depth_ramp()
+    assert lens(depth, torch.tensor([0]), 17).shape[1] == 25  # barely blurs: radius ~0 -> a 5x5 window
+    with torch.no_grad():
+        lens.log_aperture.fill_(math.log(50.0))
+    k = lens(depth, torch.tensor([0]), 17)
+    assert k.shape[1] == 17 * 17  # capped at the scale's kernel
+    torch.testing.assert_close(k.sum(1), torch.ones(1, 32, 40))
+    half = lens(depth, torch.tensor([0]), 17, pixel_scale=0.5)  # same lens at half resolution: half the radius
+    torch.testing.assert_close(
+        lens.radius(depth, torch.tensor([0]), 0.5), 0.5 * lens.radius(depth, torch.tensor([0]))
+    )
+    assert half.shape[1] == 17 * 17
+
+
+def test_lens_rejects_bad_inputs():
+    lens = ThinLensDefocus(num_views=2)
+    with pytest.raises(ValueError, match="view_ids"):
+        lens(_depth_ramp(), torch.tensor([2]), 9)
+    with pytest.raises(ValueError, match="depth"):
+        lens(torch.ones(1, 32, 40), torch.tensor([0]), 9)
+    with pytest.raises(ValueError, match="max_kernel_size"):
+        lens(_depth_ramp(), torch.tensor([0]), 8)
+    with pytest.raises(ValueError):
+        ThinLensDefocus(num_views=0)
+
+
+def test_gradients_reach_the_lens_and_the_render_but_not_the_depth():
+    lens = ThinLensDefocus(num_views=1, initial_aperture=2.0)
+    render = torch.rand(1, 3, 32, 40, requires_grad=True)
+    depth = _depth_ramp().requires_grad_(True)
+    out = BlurField.blur(render, lens(depth, torch.tensor([0]), 9), linear_light=True)
+    (out - torch.rand_like(out)).square().mean().backward()
+    assert render.grad is not None and render.grad.abs().sum() > 0
+    assert lens.log_aperture.grad is not None and lens.log_aperture.grad.abs() > 0
+    assert lens.inverse_focus.grad is not None and lens.inverse_focus.grad.abs().sum() > 0
+    assert depth.grad is None  # the lens reads the depth detached
+
+
+def test_a_lens_is_recovered_from_a_defocused_photo():
+    """Fit aperture and focus from one defocused image of a textured slanted wall (the per-view problem training
+    solves): the fitted CoC map matches the true one to a fraction of a pixel."""
+    torch.manual_seed(0)
+    depth = _depth_ramp()
+    sharp = torch.rand(1, 3, 32, 40)
+    truth = ThinLensDefocus(num_views=1)
+    with torch.no_grad():
+        truth.log_aperture.fill_(math.log(4.0))  # CoC radius 0 (depth 2) to 2 px (depth 1), 1.3 px (depth 6)
+        truth.inverse_focus.fill_(1.0 / 2.0)
+        truth.focus_initialised.fill_(True)
+        target = BlurField.blur(sharp, truth(depth, torch.tensor([0]), 11), linear_light=True)
+        true_radius = truth.radius(depth, torch.tensor([0]))
+    lens = ThinLensDefocus(num_views=1)
+    optimizer = torch.optim.Adam(lens.parameters(), lr=0.05)
+    for _ in range(300):
+        out = BlurField.blur(sharp, lens(depth, torch.tensor([0]), 11), linear_light=True)
+        loss = (out - target).abs().mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    error = (lens.radius(depth, torch.tensor([0])) - true_radius).abs().mean()
+    assert float(error) < 0.1, (float(error), float(true_radius.mean()))
+
+
+def test_blur_field_builds_a_lens_only_when_asked():
+    config = BlurFieldConfig(mode="view", kernel_sizes=(5, 9))
+    assert config.setup(num_train_views=3).thin_lens is not None
+    assert config.setup(num_train_views=3, use_thin_lens=False).thin_lens is None
+    off = BlurFieldConfig(mode="view", kernel_sizes=(5, 9), thin_lens=False)
+    assert off.setup(num_train_views=3).thin_lens is None
+    groups = config.setup(num_train_views=3).get_param_groups({})
+    assert set(groups) == {"blur_view_kernels", "blur_defocus"} and len(groups["blur_defocus"]) == 3
+    with pytest.raises(ValueError, match="thin_lens_initial_aperture"):
+        BlurFieldConfig(thin_lens_initial_aperture=0.0)
+
+
+def test_a_non_finite_depth_gives_nan_kernels_and_leaves_the_focus_alone():
+    """NaN depth (a diverged render) must reach the loss as NaN, where training stops naming the step, and must not
+    become a view's focus."""
+    lens = ThinLensDefocus(num_views=1)
+    depth = torch.full((1, 1, 8, 8), float("nan"))
+    kernels = lens(depth, torch.tensor([0]), 9)
+    assert kernels.shape == (1, 81, 8, 8) and torch.isnan(kernels).all()
+    assert not bool(lens.focus_initialised[0]) and float(lens.inverse_focus.detach()[0]) == 0.0
