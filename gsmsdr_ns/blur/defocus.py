@@ -22,11 +22,12 @@ __all__ = ["soft_disk_kernels", "thin_lens_radius", "ThinLensDefocus"]
 def soft_disk_kernels(radius: Tensor, kernel_size: int, softness: float = 0.25) -> Tensor:
     """Per-pixel disk kernels with a soft edge.
 
-    A tap at distance r_k from the centre gets weight ``sigmoid((radius - r_k) / softness)``, normalised to sum to
-    1: the pixel's area coverage by the disk (which ramps from 1 to 0 between r_k = radius - 0.5 and radius + 0.5,
-    as the degradation simulator's ``disk_kernel``) smoothed so that every weight is differentiable in the radius.
-    Radius 0 is nearly the identity (the centre tap keeps ~0.85 with the default softness); radii beyond the
-    window are truncated to it.
+    A tap at distance r_k > 0 from the centre gets weight ``s((radius - r_k) / softness) - s(-r_k / softness)``
+    (s: the sigmoid), the centre tap 1, normalised to sum to 1: the pixel's area coverage by the disk (which ramps
+    from 1 to 0 between r_k = radius - 0.5 and radius + 0.5, as the degradation simulator's ``disk_kernel``; the
+    centre pixel is always covered), smoothed so that every weight is differentiable in the radius, and shifted so
+    that radius 0 is exactly the identity (an in-focus pixel stays sharp) while its gradient there is not ~0. Radii
+    beyond the window are truncated to it.
 
     Args:
         radius: [B, 1, H, W] disk radius in pixels, >= 0.
@@ -44,7 +45,8 @@ def soft_disk_kernels(radius: Tensor, kernel_size: int, softness: float = 0.25) 
     half = kernel_size // 2
     offsets = torch.arange(kernel_size, device=radius.device, dtype=radius.dtype) - half
     tap_distance = torch.sqrt(offsets[:, None] ** 2 + offsets[None, :] ** 2).reshape(1, -1, 1, 1)
-    weights = torch.sigmoid((radius - tap_distance) / softness)
+    weights = torch.sigmoid((radius - tap_distance) / softness) - torch.sigmoid(-tap_distance / softness)
+    weights = torch.where(tap_distance == 0, torch.ones_like(weights), weights)
     return weights / weights.sum(dim=1, keepdim=True)
 
 
