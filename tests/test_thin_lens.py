@@ -72,6 +72,9 @@ def test_focus_starts_at_the_median_inverse_depth_once_and_is_checkpointed():
     assert abs(float(lens.inverse_focus.detach()[1]) - median) < 1e-6
     lens.radius(depth * 2.0, torch.tensor([1]))  # seen before: kept
     assert abs(float(lens.inverse_focus.detach()[1]) - median) < 1e-6
+    lens.eval()
+    lens.radius(depth, torch.tensor([2]))  # a viewer preview (eval mode) leaves unseen views alone
+    assert lens.focus_initialised.tolist() == [False, True, False]
     restored = ThinLensDefocus(num_views=3)
     restored.load_state_dict(lens.state_dict())
     assert restored.focus_initialised.tolist() == [False, True, False]

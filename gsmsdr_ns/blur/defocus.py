@@ -69,8 +69,8 @@ class ThinLensDefocus(nn.Module):
     Parameters: ``log_aperture`` (one, shared: a capture is usually shot with one lens setting, so every photo's
     gradient trains it), ``view_log_aperture`` [V] (each photo's deviation from it, starts at 0) and
     ``inverse_focus`` [V]. A view's focus starts, the first time the view is seen, at the median inverse depth of
-    its render (focus somewhere inside the scene), recorded in the ``focus_initialised`` buffer so a checkpoint
-    keeps it. The aperture starts at ``initial_aperture`` (small: an untrained lens barely blurs).
+    its render in training mode (focus somewhere inside the scene), recorded in the ``focus_initialised`` buffer so
+    a checkpoint keeps it. The aperture starts at ``initial_aperture`` (small: an untrained lens barely blurs).
 
     Depth units are the scene's (nerfstudio rescales poses), so the aperture is learnt in pixels at the full
     training resolution per scene unit of inverse depth; ``pixel_scale`` (render width / full width) converts.
@@ -108,6 +108,7 @@ class ThinLensDefocus(nn.Module):
         with torch.no_grad():
             medians = inverse_depth.flatten(1).nanmedian(dim=1).values
             new = ~self.focus_initialised[ids] & torch.isfinite(medians)  # a non-finite render teaches nothing
+            new &= self.training  # a viewer preview must not pick a training view's focus
             if new.any():
                 self.inverse_focus[ids[new]] = medians[new].to(self.inverse_focus.dtype)
                 self.focus_initialised[ids[new]] = True

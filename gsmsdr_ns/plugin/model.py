@@ -450,7 +450,8 @@ class GSMSDRModel(SplatfactoModel):
             low_depth = depth_in if d == 1 else F.interpolate(depth_in, size=small, mode="area")
         linear_light = self.blur_field.config.linear_light
         if lens is not None:  # as in training: the lens first, then the field
-            lens_kernels = lens(low_depth, view_ids, info.kernel_size * info.downsample // d | 1, 1.0 / d)
+            window = (info.kernel_size * info.downsample // d) | 1  # the scale's window at the preview's grid, odd
+            lens_kernels = lens(low_depth, view_ids, window, 1.0 / d)
             low = BlurField.blur(low, lens_kernels, linear_light)
         kernels, mask = self.blur_field(low, low_depth if self.blur_field.uses_depth else None, view_ids, info.scale)
         extent = kernel_spread(kernels) * info.downsample * mask  # kernel taps are pixels at the scale's resolution
