@@ -16,6 +16,8 @@ import math
 import torch
 from torch import Tensor, nn
 
+from .maan import check_bchw, check_view_ids
+
 __all__ = ["soft_disk_kernels", "thin_lens_radius", "ThinLensDefocus"]
 
 
@@ -99,21 +101,24 @@ class ThinLensDefocus(nn.Module):
     def radius(self, depth: Tensor, view_ids: Tensor, pixel_scale: float = 1.0) -> Tensor:
         """[B, 1, H, W] circle-of-confusion radius in render pixels for rendered ``depth`` [B, 1, H, W] (detached:
         the lens learns from the depth, the depth is not moved to explain the blur)."""
-        if depth.dim() != 4 or depth.shape[1] != 1:
-            raise ValueError(f"depth must be [B, 1, H, W], got {list(depth.shape)}")
+        check_bchw(depth, "depth", 1)
+        check_view_ids(view_ids, depth.shape[0], self.num_views)
         ids = view_ids.long()
-        if ids.shape != depth.shape[:1] or (ids < 0).any() or (ids >= self.num_views).any():
-            raise ValueError(f"view_ids must be [{depth.shape[0]}] in [0, {self.num_views}), got {view_ids.tolist()}")
         inverse_depth = 1.0 / depth.detach().float().clamp_min(1e-6)
-        with torch.no_grad():
-            medians = inverse_depth.flatten(1).nanmedian(dim=1).values
-            new = ~self.focus_initialised[ids] & torch.isfinite(medians)  # a non-finite render teaches nothing
-            new &= self.training  # a viewer preview must not pick a training view's focus
-            if new.any():
-                self.inverse_focus[ids[new]] = medians[new].to(self.inverse_focus.dtype)
-                self.focus_initialised[ids[new]] = True
+        # a viewer preview (eval mode) must not pick a training view's focus; seen views need no median
+        if self.training and not bool(self.focus_initialised[ids].all()):
+            self._initialise_focus(ids, inverse_depth)
         radius = thin_lens_radius(inverse_depth, self.aperture(ids), self.inverse_focus[ids])
         return radius * float(pixel_scale)
+
+    @torch.no_grad()
+    def _initialise_focus(self, ids: Tensor, inverse_depth: Tensor) -> None:
+        """Focus of the views in ``ids`` [B] not seen yet: the median of their ``inverse_depth`` [B, 1, H, W]."""
+        medians = inverse_depth.flatten(1).nanmedian(dim=1).values
+        new = ~self.focus_initialised[ids] & torch.isfinite(medians)  # a non-finite render teaches nothing
+        if new.any():
+            self.inverse_focus[ids[new]] = medians[new].to(self.inverse_focus.dtype)
+            self.focus_initialised[ids[new]] = True
 
     def forward(self, depth: Tensor, view_ids: Tensor, max_kernel_size: int, pixel_scale: float = 1.0) -> Tensor:
         """[B, K*K, H, W] defocus kernels (sum to 1) for rendered ``depth`` [B, 1, H, W] of ``view_ids`` [B].
