@@ -104,8 +104,9 @@ class BlurFieldConfig:
     kernel_prior_sigma: float = 0.5
     """Width (pixels at the coarsest scale) of the centred Gaussian the kernels start from: the untrained field
     simulates almost no blur, instead of a near-uniform kernel that blurs everything."""
-    mask_init: float = 0.5
-    """Initial blending mask m (the coarsest head's bias), in (0, 1). Mode view has no mask (m = 1)."""
+    mask_init: float = 0.9
+    """Initial blending mask m (the coarsest head's bias), in (0, 1): high, since the field only runs on images
+    believed blurred; the regulariser lowers it where blur does not matter. Mode view has no mask (m = 1)."""
     linear_light: bool = True
     """Apply the kernels to linear light (the sRGB-encoded render decoded, blurred, re-encoded): a sensor
     integrates irradiance over the exposure and the aperture before the camera's tone curve. False: blur the
@@ -355,7 +356,7 @@ class BlurField(nn.Module):
         return loss_dict
 
     def get_param_groups(self, param_groups: Dict[str, List[nn.Parameter]]) -> Dict[str, List[nn.Parameter]]:
-        """Add the ``blur_field`` group (BAGS trains it with Adam, lr 5e-4 constant) and, with per-view kernels,
+        """Add the ``blur_field`` group (constant-rate Adam: 1e-4 in the method presets, BAGS uses 5e-4) and, with per-view kernels,
         ``blur_view_kernels`` (each view's table gets a gradient only when that view is drawn: it needs a higher
         learning rate) and, with a thin lens, ``blur_defocus``."""
         view = self.heads.per_view_parameters()
