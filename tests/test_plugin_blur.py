@@ -268,6 +268,38 @@ def test_thin_lens_blurs_defocused_images_only_and_learns(mode):
     assert lens.focus_initialised.tolist() == [True, False, False, False]
 
 
+@pytest.mark.parametrize("defocus_field", [False, True])
+def test_defocus_only_images_skip_the_field_unless_asked(defocus_field):
+    """View 0 defocused only, view 1 motion-blurred and defocused, view 2 unknown (no record): the thin lens alone
+    models view 0 (the field is not evaluated, no mask), the field runs after the lens for views 1 and 2; with
+    ``defocus_field`` the field runs for view 0 too."""
+    both = {"split": "train", "degraded": True, "effects": {"motion": {}, "defocus": {}}}
+    unknown = {"split": "train"}
+    metadata = {"degradations": records("defocus", 1) + [both, unknown] + records("sharp", 1)}
+    config = BlurFieldConfig(warmup=0, thin_lens_initial_aperture=20.0, defocus_field=defocus_field)
+    model = build(metadata, blur_field=config)
+    model.train()
+    model.optimizers = None
+    field_calls: List[tuple] = []
+    lens_calls: List[int] = []
+    handles = [
+        count_calls(model.blur_field, field_calls),
+        model.blur_field.thin_lens.register_forward_hook(lambda _m, i, _o: lens_calls.append(int(i[1]))),
+    ]
+    for view in range(4):
+        camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)
+        camera.metadata = {"cam_idx": view}
+        model.step = 5
+        outputs = model.get_outputs(camera)
+        assert ("blur_mask" in outputs) == (view in (1, 2) or (view == 0 and defocus_field))
+        if view == 0:  # the lens's blur is the simulated image
+            assert float((outputs["rgb"] - outputs["rgb_sharp"]).abs().max()) > 1e-3
+    for handle in handles:
+        handle.remove()
+    assert [views for views, _, _ in field_calls] == ([(0,)] if defocus_field else []) + [(1,), (2,)]
+    assert lens_calls == [0, 1, 2]
+
+
 def test_records_must_match_the_training_images():
     with pytest.raises(ValueError, match="describes the degradation of 3 training images, but there are 4"):
         build({"degradations": records("motion", 3)})

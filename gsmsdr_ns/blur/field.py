@@ -122,6 +122,10 @@ class BlurFieldConfig:
     per-pixel disk kernels whose radius follows the rendered depth, ``aperture * |1/d - 1/d_focus|``, with one
     aperture and focus per view (:class:`~gsmsdr_ns.blur.defocus.ThinLensDefocus`, optimizer group
     ``blur_defocus``). Motion-blurred and mixed-resolution images never pay for it."""
+    defocus_field: bool = False
+    """Also run the field (per-pixel and per-view kernels, mask) after the thin lens on images known to be defocused
+    only. False: the lens alone models them (the field would compete with it for the same blur); images with motion
+    blur, or nothing known, always run the field. Ignored without ``thin_lens``."""
     thin_lens_initial_aperture: float = 1.0
     """Starting aperture: CoC radius in pixels per scene unit of inverse depth (small: the untrained lens barely
     blurs)."""

@@ -81,6 +81,11 @@ class DegradationProfile:
         return self.motion or self.defocus or self.mixres_factor is None
 
     @property
+    def defocus_only(self) -> bool:
+        """Known to be blurred by defocus alone (no motion, no resolution loss of unknown factor)."""
+        return self.defocus and not self.motion and self.mixres_factor is not None
+
+    @property
     def needs_depth(self) -> bool:
         """Depth is an input of the blur field for this image (defocus: required; motion: helps, see module doc)."""
         return self.motion or self.defocus

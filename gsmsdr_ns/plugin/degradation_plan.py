@@ -52,10 +52,13 @@ class DegradationPlan(NamedTuple):
     """The image may be defocused: the blur field's thin lens blurs the render first (needs depth)."""
     render_downscale: int = 1
     """The render's downscale factor (the thin lens's aperture is in full-resolution pixels)."""
+    blur_field: bool = True
+    """The field's kernels run (after the lens, if any); False: a defocused image is modelled by the thin lens
+    alone."""
 
     @property
     def needs_depth(self) -> bool:
-        return self.blur_scale is not None and (self.blur_uses_depth or self.thin_lens)
+        return self.blur_scale is not None and ((self.blur_uses_depth and self.blur_field) or self.thin_lens)
 
     @property
     def is_plain(self) -> bool:

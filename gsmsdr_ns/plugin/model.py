@@ -384,9 +384,21 @@ class GSMSDRModel(SplatfactoModel):
         factor = 1.0
         if profile.needs_resolution_model and self.resolution_model is not None:
             factor = effective_factor(profile.mixres_factor, downscale)
-        uses_depth = self.blur_field is not None and self.blur_field.uses_depth
         thin_lens = profile.defocus and self.blur_field is not None and self.blur_field.thin_lens is not None
-        return DegradationPlan(view_id, blur_scale, uses_depth, factor, thin_lens, downscale)
+        runs_field = not self._lens_alone(profile)
+        uses_depth = self.blur_field is not None and self.blur_field.uses_depth and runs_field
+        return DegradationPlan(view_id, blur_scale, uses_depth, factor, thin_lens, downscale, runs_field)
+
+    def _lens_alone(self, profile: DegradationProfile) -> bool:
+        """Whether the thin lens alone models this image's blur (defocus only, a lens is built, and the config does
+        not ask for the field on defocus)."""
+        field = self.blur_field
+        return (
+            field is not None
+            and field.thin_lens is not None
+            and profile.defocus_only
+            and not field.config.defocus_field
+        )
 
     def _simulate_degradation(
         self, rgb: Tensor, depth: Optional[Tensor], plan: DegradationPlan
@@ -408,10 +420,11 @@ class GSMSDRModel(SplatfactoModel):
                     depth.permute(2, 0, 1)[None], view_ids, plan.blur_scale.kernel_size, 1.0 / plan.render_downscale
                 )
                 image = BlurField.blur(image, lens, linear_light)
-            depth_in = depth.permute(2, 0, 1)[None] if plan.blur_uses_depth else None
-            kernels, mask = self.blur_field(image, depth_in, view_ids, plan.blur_scale.scale)
-            image = BlurField.degrade(image, kernels, mask, linear_light)
-            outputs["blur_mask"] = mask[0].permute(1, 2, 0)
+            if plan.blur_field:
+                depth_in = depth.permute(2, 0, 1)[None] if plan.blur_uses_depth else None
+                kernels, mask = self.blur_field(image, depth_in, view_ids, plan.blur_scale.scale)
+                image = BlurField.degrade(image, kernels, mask, linear_light)
+                outputs["blur_mask"] = mask[0].permute(1, 2, 0)
         if plan.resolution_factor > 1.0:
             assert self.resolution_model is not None
             image = self.resolution_model(image, [plan.resolution_factor], view_ids)
@@ -431,7 +444,9 @@ class GSMSDRModel(SplatfactoModel):
         size. ``degraded`` [H, W, 3] = mask * blurred + (1 - mask) * render; ``kernel_size`` [H, W, 1] = the
         kernels' RMS blur radius in pixels of the render, times the mask (0 where the field keeps the render
         sharp); ``blur_mask`` [H, W, 1]. When that training view is defocused, its thin lens blurs the render
-        first (``render`` above is then the lens's blur) and its RMS radius is added in quadrature.
+        first (``render`` above is then the lens's blur) and its RMS radius is added in quadrature; a view the lens
+        models alone (defocus only, see ``BlurFieldConfig.defocus_field``) shows the lens's blur, its RMS radius and
+        a mask of 1.
         """
         assert self.blur_field is not None and self.hpko is not None
         height, width = rgb.shape[:2]
@@ -444,25 +459,33 @@ class GSMSDRModel(SplatfactoModel):
         view_id = nearest_view(self.train_camera_centres, centre)
         view_ids = torch.tensor([view_id], device=image.device)
         lens = self.blur_field.thin_lens if self.profiles[view_id].defocus else None
+        lens_alone = self._lens_alone(self.profiles[view_id])
+        field_depth = self.blur_field.uses_depth and not lens_alone
         low_depth = None
-        if self.blur_field.uses_depth or lens is not None:
+        if field_depth or lens is not None:
             depth_in = depth.permute(2, 0, 1)[None]
             low_depth = depth_in if d == 1 else F.interpolate(depth_in, size=small, mode="area")
         linear_light = self.blur_field.config.linear_light
+
+        def enlarge(x: Tensor) -> Tensor:
+            return x if d == 1 else F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False)
+
         if lens is not None:  # as in training: the lens first, then the field
             window = (info.kernel_size * info.downsample // d) | 1  # the scale's window at the preview's grid, odd
             lens_kernels = lens(low_depth, view_ids, window, 1.0 / d)
             low = BlurField.blur(low, lens_kernels, linear_light)
-        kernels, mask = self.blur_field(low, low_depth if self.blur_field.uses_depth else None, view_ids, info.scale)
+            if lens_alone:  # as in training: a defocus-only view is the lens's blur in full
+                return {
+                    "degraded": enlarge(low).clamp(0.0, 1.0)[0].permute(1, 2, 0),
+                    "kernel_size": enlarge(kernel_spread(lens_kernels) * d)[0].permute(1, 2, 0),
+                    "blur_mask": rgb.new_ones(height, width, 1),
+                }
+        kernels, mask = self.blur_field(low, low_depth if field_depth else None, view_ids, info.scale)
         extent = kernel_spread(kernels) * info.downsample * mask  # kernel taps are pixels at the scale's resolution
         if lens is not None:  # RMS radii of successive blurs add in quadrature
             extent = torch.sqrt(extent**2 + (kernel_spread(lens_kernels) * d) ** 2)
         coarse = coarsen_kernels(kernels, d // info.downsample)
         blurred = BlurField.blur(low, coarse, linear_light)
-
-        def enlarge(x: Tensor) -> Tensor:
-            return x if d == 1 else F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False)
-
         mask_full = enlarge(mask)
         base = image if lens is None else enlarge(low)  # what the field blends with: the render, or its lens blur
         degraded = (mask_full * enlarge(blurred) + (1.0 - mask_full) * base).clamp(0.0, 1.0)
