@@ -10,7 +10,7 @@ import math
 import pytest
 import torch
 
-from gsmsdr_ns.blur.defocus import ThinLensDefocus, soft_disk_kernels, thin_lens_radius
+from gsmsdr_ns.blur.defocus import ThinLensDefocus, occluding_disk_kernels, soft_disk_kernels, thin_lens_radius
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.kernels import apply_pixel_kernels
 from gsmsdr_ns.degrade.kernels import defocus_radius
@@ -47,6 +47,53 @@ def test_soft_disk_kernels_reject_bad_arguments(bad):
     args = {"kernel_size": 5, "softness": 0.15, **bad}
     with pytest.raises(ValueError):
         soft_disk_kernels(torch.zeros(1, 1, 2, 2), args["kernel_size"], args["softness"])
+
+
+def test_occluding_disk_kernels_reduce_to_soft_disks_on_a_flat_scene_and_to_the_identity_in_focus():
+    flat = torch.ones(1, 1, 6, 7)
+    for r in (0.0, 1.3, 2.6):
+        radius = torch.full((1, 1, 6, 7), r, dtype=torch.float64)
+        k = occluding_disk_kernels(radius, flat.double(), 9)
+        torch.testing.assert_close(k, soft_disk_kernels(radius, 9))
+        torch.testing.assert_close(k.sum(1), torch.ones(1, 6, 7, dtype=torch.float64))
+    depth = torch.rand(1, 1, 6, 7) + 0.5
+    identity = occluding_disk_kernels(torch.zeros(1, 1, 6, 7), 1.0 / depth, 5)
+    image = torch.rand(1, 3, 6, 7)
+    assert torch.equal(apply_pixel_kernels(image, identity), image)
+
+
+def test_occluding_disk_kernels_keep_a_sharp_foreground_and_spread_a_blurred_one():
+    """Left half near (inverse depth 1), right half far (0.1). An in-focus near half takes nothing from the blurred
+    far half; a blurred near half spreads its light over the in-focus far half."""
+    inverse_depth = torch.full((1, 1, 5, 12), 0.1)
+    inverse_depth[..., :6] = 1.0
+    image = torch.zeros(1, 1, 5, 12)
+    image[..., 6:] = 1.0  # far half bright
+    sharp_near = torch.zeros(1, 1, 5, 12)
+    sharp_near[..., 6:] = 3.0  # background blurred, foreground in focus
+    out = apply_pixel_kernels(image, occluding_disk_kernels(sharp_near, inverse_depth, 9))
+    assert float(out[..., :6].abs().max()) < 1e-6  # no background light on the in-focus foreground
+    assert float(out[..., 6:].min()) > 0.99  # the background blurs only among itself
+    # the gather-only disk of soft_disk_kernels lets the blurred background take in the dark foreground instead
+    gathered = apply_pixel_kernels(image, soft_disk_kernels(sharp_near, 9))
+    assert float(gathered[..., 6].mean()) < 0.8
+    blurred_near = torch.zeros(1, 1, 5, 12)
+    blurred_near[..., :6] = 3.0  # foreground blurred, background in focus
+    image_near = 1.0 - image  # near half bright
+    out = apply_pixel_kernels(image_near, occluding_disk_kernels(blurred_near, inverse_depth, 9))
+    assert float(out[..., 6:8].min()) > 0.05  # the blurred foreground's light reaches over the background edge
+    assert float(out[..., 11].max()) < 1e-3  # but not beyond its disk
+
+
+def test_occluding_disk_kernels_are_differentiable_in_the_radius_and_check_shapes():
+    radius = torch.full((1, 1, 4, 4), 1.5, requires_grad=True)
+    inverse_depth = torch.rand(1, 1, 4, 4)
+    apply_pixel_kernels(torch.rand(1, 3, 4, 4), occluding_disk_kernels(radius, inverse_depth, 5)).square().sum().backward()
+    assert radius.grad is not None and torch.isfinite(radius.grad).all() and radius.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="inverse_depth"):
+        occluding_disk_kernels(torch.zeros(1, 1, 4, 4), torch.zeros(1, 1, 4, 5), 5)
+    with pytest.raises(ValueError):
+        occluding_disk_kernels(torch.zeros(1, 1, 4, 4), torch.zeros(1, 1, 4, 4), 4)
 
 
 def test_thin_lens_radius_is_the_degradation_tools_circle_of_confusion():

@@ -4,4 +4,4 @@ from gsmsdr_ns.blur.kernels import ApplyPixelKernels, apply_pixel_kernels, apply
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.hpko import HPKOHeads, HPKOScheduler, ScaleInfo
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, down_up, effective_factor
-from gsmsdr_ns.blur.defocus import ThinLensDefocus, soft_disk_kernels, thin_lens_radius
+from gsmsdr_ns.blur.defocus import ThinLensDefocus, occluding_disk_kernels, soft_disk_kernels, thin_lens_radius

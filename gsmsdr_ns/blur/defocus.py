@@ -14,11 +14,12 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .maan import check_bchw, check_view_ids
 
-__all__ = ["soft_disk_kernels", "thin_lens_radius", "ThinLensDefocus"]
+__all__ = ["soft_disk_kernels", "occluding_disk_kernels", "thin_lens_radius", "ThinLensDefocus"]
 
 
 def soft_disk_kernels(radius: Tensor, kernel_size: int, softness: float = 0.25) -> Tensor:
@@ -52,6 +53,51 @@ def soft_disk_kernels(radius: Tensor, kernel_size: int, softness: float = 0.25) 
     return weights / weights.sum(dim=1, keepdim=True)
 
 
+def occluding_disk_kernels(radius: Tensor, inverse_depth: Tensor, kernel_size: int, softness: float = 0.25) -> Tensor:
+    """Per-pixel defocus kernels that let each neighbour spread its own disk, with depth occlusion.
+
+    A defocused photo is every scene point spread over its own circle of confusion, and a sharp object in front
+    hides the blurred background behind it. Pixel p therefore gathers neighbour q (at distance r_k) with the soft
+    coverage of :func:`soft_disk_kernels` at q's radius, divided by q's disk area ``1 + pi r_q^2`` (q's light is
+    shared over its disk), except that a neighbour behind p (smaller inverse depth) reaches no further than p's
+    own radius: an in-focus foreground pixel takes nothing from the blurred background, a blurred foreground
+    spreads over what lies behind it. Weights are normalised per pixel. With one radius and one depth everywhere
+    this is :func:`soft_disk_kernels`; radius 0 everywhere is the identity.
+
+    Args:
+        radius: [B, 1, H, W] disk radius in pixels, >= 0 (differentiable).
+        inverse_depth: [B, 1, H, W] 1 / depth (only compared, never differentiated).
+        kernel_size: odd window size K.
+        softness: edge width in pixels (> 0).
+    Returns:
+        [B, K*K, H, W] weights (row-major window index, as ``apply_pixel_kernels``), summing to 1 over dim 1.
+    """
+    if kernel_size < 1 or kernel_size % 2 == 0:
+        raise ValueError(f"kernel_size must be a positive odd integer, got {kernel_size}")
+    if not softness > 0:
+        raise ValueError(f"softness must be > 0, got {softness}")
+    if radius.dim() != 4 or radius.shape[1] != 1 or inverse_depth.shape != radius.shape:
+        raise ValueError(
+            f"radius and inverse_depth must both be [B, 1, H, W], got {list(radius.shape)} and "
+            f"{list(inverse_depth.shape)}"
+        )
+    B, _, H, W = radius.shape
+    half = kernel_size // 2
+
+    def neighbours(x: Tensor) -> Tensor:  # [B, 1, H, W] -> [B, K*K, H, W]: x at p + offset k
+        return F.unfold(F.pad(x, (half,) * 4, mode="replicate"), kernel_size).view(B, kernel_size**2, H, W)
+
+    radius_q = neighbours(radius)
+    behind = neighbours(inverse_depth.detach().to(radius.dtype)) < inverse_depth.detach().to(radius.dtype)
+    reach = torch.where(behind, torch.minimum(radius_q, radius), radius_q)
+    offsets = torch.arange(kernel_size, device=radius.device, dtype=radius.dtype) - half
+    tap_distance = torch.sqrt(offsets[:, None] ** 2 + offsets[None, :] ** 2).reshape(1, -1, 1, 1)
+    coverage = torch.sigmoid((reach - tap_distance) / softness) - torch.sigmoid(-tap_distance / softness)
+    coverage = torch.where(tap_distance == 0, torch.ones_like(coverage), coverage)
+    weights = coverage / (1.0 + math.pi * radius_q**2)
+    return weights / weights.sum(dim=1, keepdim=True)
+
+
 def thin_lens_radius(inverse_depth: Tensor, aperture: Tensor, inverse_focus: Tensor) -> Tensor:
     """Circle-of-confusion radius of a thin lens: ``aperture * |1/d - 1/d_f|``.
 
@@ -74,12 +120,18 @@ class ThinLensDefocus(nn.Module):
     its render in training mode (focus somewhere inside the scene), recorded in the ``focus_initialised`` buffer so
     a checkpoint keeps it. The aperture starts at ``initial_aperture`` (small: an untrained lens barely blurs).
 
+    With ``occlusion`` (default) the kernels are :func:`occluding_disk_kernels` (each neighbour spreads its own
+    disk, an in-focus foreground hides the background), else :func:`soft_disk_kernels` (each pixel's own disk).
+
     Depth units are the scene's (nerfstudio rescales poses), so the aperture is learnt in pixels at the full
     training resolution per scene unit of inverse depth; ``pixel_scale`` (render width / full width) converts.
     """
 
-    def __init__(self, num_views: int, initial_aperture: float = 1.0, softness: float = 0.25) -> None:
+    def __init__(
+        self, num_views: int, initial_aperture: float = 1.0, softness: float = 0.25, occlusion: bool = True
+    ) -> None:
         super().__init__()
+        self.occlusion = bool(occlusion)
         if num_views < 1:
             raise ValueError(f"num_views must be >= 1, got {num_views}")
         if not initial_aperture > 0:
@@ -134,4 +186,7 @@ class ThinLensDefocus(nn.Module):
         half = max_kernel_size // 2
         if not math.isnan(largest):
             half = min(half, math.ceil(largest + 6.0 * self.softness))
-        return soft_disk_kernels(radius, 2 * half + 1, self.softness)
+        if not self.occlusion:
+            return soft_disk_kernels(radius, 2 * half + 1, self.softness)
+        inverse_depth = 1.0 / depth.detach().to(radius.dtype).clamp_min(1e-6)
+        return occluding_disk_kernels(radius, inverse_depth, 2 * half + 1, self.softness)

@@ -126,6 +126,10 @@ class BlurFieldConfig:
     """Also run the field (per-pixel and per-view kernels, mask) after the thin lens on images known to be defocused
     only. False: the lens alone models them (the field would compete with it for the same blur); images with motion
     blur, or nothing known, always run the field. Ignored without ``thin_lens``."""
+    thin_lens_occlusion: bool = True
+    """Each neighbour spreads its own disk and an in-focus foreground hides the blurred background behind it
+    (:func:`~gsmsdr_ns.blur.defocus.occluding_disk_kernels`); False: every pixel gathers its own disk whatever the
+    neighbours' depth (:func:`~gsmsdr_ns.blur.defocus.soft_disk_kernels`)."""
     thin_lens_initial_aperture: float = 1.0
     """Starting aperture: CoC radius in pixels per scene unit of inverse depth (small: the untrained lens barely
     blurs)."""
@@ -240,7 +244,9 @@ class BlurField(nn.Module):
         self.heads: nn.Module
         self.thin_lens: Optional[ThinLensDefocus] = None
         if config.thin_lens and use_thin_lens:
-            self.thin_lens = ThinLensDefocus(num_train_views, config.thin_lens_initial_aperture)
+            self.thin_lens = ThinLensDefocus(
+                num_train_views, config.thin_lens_initial_aperture, occlusion=config.thin_lens_occlusion
+            )
         if config.mode == "view":
             self.heads = ViewKernels(
                 num_train_views,
