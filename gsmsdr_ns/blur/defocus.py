@@ -22,6 +22,23 @@ from .maan import check_bchw, check_view_ids
 __all__ = ["soft_disk_kernels", "occluding_disk_kernels", "thin_lens_radius", "ThinLensDefocus"]
 
 
+def _check_window(kernel_size: int, softness: float) -> None:
+    if kernel_size < 1 or kernel_size % 2 == 0:
+        raise ValueError(f"kernel_size must be a positive odd integer, got {kernel_size}")
+    if not softness > 0:
+        raise ValueError(f"softness must be > 0, got {softness}")
+
+
+def _disk_coverage(radius: Tensor, kernel_size: int, softness: float) -> Tensor:
+    """Soft coverage of each window tap by a disk: radius [B, 1 or K*K, H, W] -> [B, K*K, H, W] (unnormalised;
+    the centre tap 1; the other taps 0 at radius 0)."""
+    half = kernel_size // 2
+    offsets = torch.arange(kernel_size, device=radius.device, dtype=radius.dtype) - half
+    tap_distance = torch.sqrt(offsets[:, None] ** 2 + offsets[None, :] ** 2).reshape(1, -1, 1, 1)
+    coverage = torch.sigmoid((radius - tap_distance) / softness) - torch.sigmoid(-tap_distance / softness)
+    return torch.where(tap_distance == 0, torch.ones_like(coverage), coverage)
+
+
 def soft_disk_kernels(radius: Tensor, kernel_size: int, softness: float = 0.25) -> Tensor:
     """Per-pixel disk kernels with a soft edge.
 
@@ -39,17 +56,10 @@ def soft_disk_kernels(radius: Tensor, kernel_size: int, softness: float = 0.25) 
     Returns:
         [B, K*K, H, W] weights (row-major window index, as ``apply_pixel_kernels``), summing to 1 over dim 1.
     """
-    if kernel_size < 1 or kernel_size % 2 == 0:
-        raise ValueError(f"kernel_size must be a positive odd integer, got {kernel_size}")
-    if not softness > 0:
-        raise ValueError(f"softness must be > 0, got {softness}")
+    _check_window(kernel_size, softness)
     if radius.dim() != 4 or radius.shape[1] != 1:
         raise ValueError(f"radius must be [B, 1, H, W], got {list(radius.shape)}")
-    half = kernel_size // 2
-    offsets = torch.arange(kernel_size, device=radius.device, dtype=radius.dtype) - half
-    tap_distance = torch.sqrt(offsets[:, None] ** 2 + offsets[None, :] ** 2).reshape(1, -1, 1, 1)
-    weights = torch.sigmoid((radius - tap_distance) / softness) - torch.sigmoid(-tap_distance / softness)
-    weights = torch.where(tap_distance == 0, torch.ones_like(weights), weights)
+    weights = _disk_coverage(radius, kernel_size, softness)
     return weights / weights.sum(dim=1, keepdim=True)
 
 
@@ -72,10 +82,7 @@ def occluding_disk_kernels(radius: Tensor, inverse_depth: Tensor, kernel_size: i
     Returns:
         [B, K*K, H, W] weights (row-major window index, as ``apply_pixel_kernels``), summing to 1 over dim 1.
     """
-    if kernel_size < 1 or kernel_size % 2 == 0:
-        raise ValueError(f"kernel_size must be a positive odd integer, got {kernel_size}")
-    if not softness > 0:
-        raise ValueError(f"softness must be > 0, got {softness}")
+    _check_window(kernel_size, softness)
     if radius.dim() != 4 or radius.shape[1] != 1 or inverse_depth.shape != radius.shape:
         raise ValueError(
             f"radius and inverse_depth must both be [B, 1, H, W], got {list(radius.shape)} and "
@@ -90,11 +97,7 @@ def occluding_disk_kernels(radius: Tensor, inverse_depth: Tensor, kernel_size: i
     radius_q = neighbours(radius)
     behind = neighbours(inverse_depth.detach().to(radius.dtype)) < inverse_depth.detach().to(radius.dtype)
     reach = torch.where(behind, torch.minimum(radius_q, radius), radius_q)
-    offsets = torch.arange(kernel_size, device=radius.device, dtype=radius.dtype) - half
-    tap_distance = torch.sqrt(offsets[:, None] ** 2 + offsets[None, :] ** 2).reshape(1, -1, 1, 1)
-    coverage = torch.sigmoid((reach - tap_distance) / softness) - torch.sigmoid(-tap_distance / softness)
-    coverage = torch.where(tap_distance == 0, torch.ones_like(coverage), coverage)
-    weights = coverage / (1.0 + math.pi * radius_q**2)
+    weights = _disk_coverage(reach, kernel_size, softness) / (1.0 + math.pi * radius_q**2)
     return weights / weights.sum(dim=1, keepdim=True)
 
 
