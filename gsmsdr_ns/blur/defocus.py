@@ -156,10 +156,15 @@ class ThinLensDefocus(nn.Module):
     def radius(self, depth: Tensor, view_ids: Tensor, pixel_scale: float = 1.0) -> Tensor:
         """[B, 1, H, W] circle-of-confusion radius in render pixels for rendered ``depth`` [B, 1, H, W] (detached:
         the lens learns from the depth, the depth is not moved to explain the blur)."""
+        return self._radius(self._inverse_depth(depth, view_ids), view_ids.long(), pixel_scale)
+
+    def _inverse_depth(self, depth: Tensor, view_ids: Tensor) -> Tensor:
+        """Checked, detached ``1 / depth`` [B, 1, H, W] (float)."""
         check_bchw(depth, "depth", 1)
         check_view_ids(view_ids, depth.shape[0], self.num_views)
-        ids = view_ids.long()
-        inverse_depth = 1.0 / depth.detach().float().clamp_min(1e-6)
+        return 1.0 / depth.detach().float().clamp_min(1e-6)
+
+    def _radius(self, inverse_depth: Tensor, ids: Tensor, pixel_scale: float) -> Tensor:
         # a viewer preview (eval mode) must not pick a training view's focus; seen views need no median
         if self.training and not bool(self.focus_initialised[ids].all()):
             self._initialise_focus(ids, inverse_depth)
@@ -183,7 +188,8 @@ class ThinLensDefocus(nn.Module):
         """
         if max_kernel_size < 1 or max_kernel_size % 2 == 0:
             raise ValueError(f"max_kernel_size must be a positive odd integer, got {max_kernel_size}")
-        radius = self.radius(depth, view_ids, pixel_scale).clamp(max=max_kernel_size // 2)
+        inverse_depth = self._inverse_depth(depth, view_ids)
+        radius = self._radius(inverse_depth, view_ids.long(), pixel_scale).clamp(max=max_kernel_size // 2)
         largest = float(radius.detach().max())
         # a NaN radius (NaN depth) flows on into the loss, where training stops naming the step
         half = max_kernel_size // 2
@@ -191,5 +197,4 @@ class ThinLensDefocus(nn.Module):
             half = min(half, math.ceil(largest + 6.0 * self.softness))
         if not self.occlusion:
             return soft_disk_kernels(radius, 2 * half + 1, self.softness)
-        inverse_depth = 1.0 / depth.detach().to(radius.dtype).clamp_min(1e-6)
         return occluding_disk_kernels(radius, inverse_depth, 2 * half + 1, self.softness)

@@ -386,7 +386,7 @@ class GSMSDRModel(SplatfactoModel):
             factor = effective_factor(profile.mixres_factor, downscale)
         thin_lens = profile.defocus and self.blur_field is not None and self.blur_field.thin_lens is not None
         runs_field = not self._lens_alone(profile)
-        uses_depth = self.blur_field is not None and self.blur_field.uses_depth and runs_field
+        uses_depth = self.blur_field is not None and self.blur_field.uses_depth
         return DegradationPlan(view_id, blur_scale, uses_depth, factor, thin_lens, downscale, runs_field)
 
     def _lens_alone(self, profile: DegradationProfile) -> bool:
