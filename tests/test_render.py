@@ -237,8 +237,8 @@ def test_cpu_rejects_bad_inputs():
     means, quats, scales, opac, colors, viewmats, Ks, W, H = random_scene(10, 0, dtype=torch.float32)
     with pytest.raises(ValueError, match="means must have shape"):
         rasterization(means[:, :2], quats, scales, opac, colors, viewmats, Ks, W, H, packed=False)
-    with pytest.raises(ValueError, match="packed=True"):
-        rasterization(means, quats, scales, opac, colors, viewmats, Ks, W, H, packed=True)
+    with pytest.raises(ValueError, match="packed=True with absgrad=True"):
+        rasterization(means, quats, scales, opac, colors, viewmats, Ks, W, H, packed=True, absgrad=True)
     with pytest.raises(ValueError, match="sh_degree=2 needs 9"):
         rasterization(means, quats, scales, opac, torch.zeros(10, 4, 3), viewmats, Ks, W, H, sh_degree=2, packed=False)
 

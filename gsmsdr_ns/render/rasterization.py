@@ -127,13 +127,17 @@ def rasterization(
         backgrounds: [C, D] or None. render_mode: "RGB", "D", "ED", "RGB+D" or "RGB+ED" (depth appended last).
         absgrad: set `meta["means2d"].absgrad` after backward. rasterize_mode: "classic" or "antialiased".
         cpu_backend: CPU pixel kernel, "auto" (C++ when it builds), "cpp" or "torch". Ignored on CUDA.
-        The other arguments are gsplat's; on CPU, `packed`, `sparse_grad`, `distributed` and non-pinhole camera
-        models are not supported and raise (splatfacto-style callers pass packed=False).
+        packed: on CPU the images are the same either way; packed=True returns gsplat's packed `meta` (the
+            visible camera-Gaussian pairs only, with `camera_ids` and `gaussian_ids`), packed=False the [C, N]
+            layout. packed=True with absgrad=True is CUDA-only.
+        The other arguments are gsplat's; on CPU, `sparse_grad`, `distributed` and non-pinhole camera models are
+        not supported and raise.
 
     Returns:
         render_colors: [C, H, W, D']. render_alphas: [C, H, W, 1]. meta: dict with gsplat's keys (radii,
         means2d, depths, conics, opacities, tiles_per_gauss, isect_ids, flatten_ids, isect_offsets, width,
-        height, tile_size, n_cameras, ...) plus "backend".
+        height, tile_size, n_cameras, ...) plus "backend". Packed: radii [nnz], means2d [nnz, 2], depths [nnz],
+        conics [nnz, 3], opacities [nnz], camera_ids [nnz], gaussian_ids [nnz], flatten_ids into those nnz rows.
     """
     if means.is_cuda:
         from gsplat.rendering import rasterization as gsplat_rasterization
@@ -148,11 +152,12 @@ def rasterization(
         meta["backend"] = "gsplat"
         return colors_out, alphas, meta
 
-    unsupported = {"packed=True": packed, "sparse_grad=True": sparse_grad, "distributed=True": distributed}
+    unsupported = {"sparse_grad=True": sparse_grad, "distributed=True": distributed}
+    unsupported["packed=True with absgrad=True"] = packed and absgrad
     unsupported[f"camera_model={camera_model!r}"] = camera_model != "pinhole"
     for what, used in unsupported.items():
         if used:
-            raise ValueError(f"rasterization on CPU does not support {what}; it is CUDA-only (pass packed=False)")
+            raise ValueError(f"rasterization on CPU does not support {what}; it is CUDA-only")
     if render_mode not in ("RGB", "D", "ED", "RGB+D", "RGB+ED"):
         raise ValueError(f"rasterization: unknown render_mode {render_mode!r}")
     if rasterize_mode not in ("classic", "antialiased"):
@@ -172,7 +177,7 @@ def rasterization(
         return _rasterization_cpu(
             cast(means), cast(quats), cast(scales), cast(opacities), cast(colors), cast(viewmats), cast(Ks), width,
             height, near_plane, far_plane, radius_clip, eps2d, sh_degree, tile_size, cast(backgrounds), render_mode,
-            absgrad, rasterize_mode, cast(covars), cpu_backend,
+            absgrad, rasterize_mode, cast(covars), cpu_backend, packed,
         )  # fmt: skip
 
 
@@ -198,6 +203,7 @@ def _rasterization_cpu(
     rasterize_mode: str,
     covars: Optional[Tensor],
     cpu_backend: CpuBackend,
+    packed: bool = False,
 ) -> Tuple[Tensor, Tensor, Dict]:
     """The CPU path of `rasterization` (arguments checked, one floating dtype, autocast off)."""
     C, N = viewmats.shape[0], means.shape[0]
@@ -230,6 +236,13 @@ def _rasterization_cpu(
         if backgrounds is not None:
             backgrounds = backgrounds.new_zeros(C, 1)
 
+    means2d = proj.means2d
+    if packed:
+        camera_ids, gaussian_ids = torch.nonzero(proj.radii > 0, as_tuple=True)  # [nnz] each
+        packed_means2d = proj.means2d[camera_ids, gaussian_ids]  # [nnz, 2]: its .grad is the densification signal
+        # render from the packed rows scattered back, so the image's gradient reaches packed_means2d
+        means2d = proj.means2d.detach().index_put((camera_ids, gaussian_ids), packed_means2d)
+
     tile_width, tile_height = math.ceil(width / tile_size), math.ceil(height / tile_size)
     tiles_per_gauss, isect_ids, flatten_ids = isect_tiles(
         proj.means2d, proj.radii, proj.depths, tile_size, tile_width, tile_height
@@ -237,7 +250,7 @@ def _rasterization_cpu(
     isect_offsets = isect_offset_encode(isect_ids, C, tile_width, tile_height)
     backend = resolve_cpu_backend(cpu_backend)
     render_colors, render_alphas = rasterize_to_pixels(
-        proj.means2d, proj.conics, colors_c.contiguous(), opacities_c.contiguous(), width, height, tile_size,
+        means2d, proj.conics, colors_c.contiguous(), opacities_c.contiguous(), width, height, tile_size,
         isect_offsets, flatten_ids, backgrounds=backgrounds, absgrad=absgrad, backend=backend,
     )  # fmt: skip
     if render_mode in ("ED", "RGB+ED"):
@@ -264,4 +277,29 @@ def _rasterization_cpu(
         "n_cameras": C,
         "backend": backend,
     }
+    if packed:
+        meta.update(_packed_meta(meta, camera_ids, gaussian_ids, packed_means2d, N))
     return render_colors, render_alphas, meta
+
+
+def _packed_meta(
+    meta: Dict, camera_ids: Tensor, gaussian_ids: Tensor, packed_means2d: Tensor, num_gaussians: int
+) -> Dict:
+    """gsplat's packed layout of the per-camera entries of an unpacked `meta`.
+
+    Args:
+        meta: the unpacked meta ([C, N] per-camera entries, flatten_ids indexing C * N).
+        camera_ids, gaussian_ids: [nnz] the visible (radii > 0) pairs, in row-major (camera, Gaussian) order.
+        packed_means2d: [nnz, 2] the rows the image was rendered from.
+
+    Returns:
+        The entries that differ in packed mode: camera_ids, gaussian_ids, radii, means2d, depths, conics,
+        opacities and tiles_per_gauss as [nnz] rows, flatten_ids re-indexed into them.
+    """
+    rows = {name: meta[name][camera_ids, gaussian_ids] for name in ("radii", "depths", "conics", "opacities")}
+    rows["tiles_per_gauss"] = meta["tiles_per_gauss"].reshape(-1, num_gaussians)[camera_ids, gaussian_ids]
+    flat = camera_ids * num_gaussians + gaussian_ids
+    row_of = torch.full((meta["n_cameras"] * num_gaussians,), -1, dtype=torch.int64, device=flat.device)
+    row_of[flat] = torch.arange(flat.shape[0], device=flat.device)
+    flatten_ids = row_of[meta["flatten_ids"].long()].to(meta["flatten_ids"].dtype)
+    return dict(rows, camera_ids=camera_ids, gaussian_ids=gaussian_ids, means2d=packed_means2d, flatten_ids=flatten_ids)
