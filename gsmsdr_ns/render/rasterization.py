@@ -142,6 +142,10 @@ def rasterization(
     if means.is_cuda:
         from gsplat.rendering import rasterization as gsplat_rasterization
 
+        from gsmsdr_ns.render.gsplat_backend import require_gsplat_cuda
+
+        require_gsplat_cuda()  # cached after the first call: no cost per render
+
         colors_out, alphas, meta = gsplat_rasterization(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
             far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d, sh_degree=sh_degree, packed=packed,
