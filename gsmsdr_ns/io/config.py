@@ -89,7 +89,7 @@ def _convert(tp: Any, value: Any, prefix: str, key: str, base: Any = None) -> An
     if dataclasses.is_dataclass(tp):
         if value is None and base is not None:
             return base
-        return _load(tp, {} if value is None else value, prefix, key, base if base is not None else tp())
+        return _load(tp, {} if value is None else value, prefix, key, base)
     if origin is Union or (hasattr(types, "UnionType") and isinstance(tp, types.UnionType)):
         if value is None and type(None) in args:
             return None

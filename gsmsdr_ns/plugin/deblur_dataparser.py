@@ -77,7 +77,7 @@ class DeblurNerfDataParser(SortedSceneParser):
                     "set --pipeline.datamanager.dataparser.colmap-path if the model lives elsewhere."
                 )
         if source == "colmap":
-            return self.read_colmap(recon)
+            return self.colmap_source(recon)
         if not poses_bounds.is_file():
             raise InputError(f"gsmsdr: pose_source is poses_bounds but '{poses_bounds}' does not exist.")
         return self.read_llff(poses_bounds)

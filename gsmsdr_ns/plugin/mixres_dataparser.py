@@ -67,7 +67,7 @@ class MixresDataParser(SortedSceneParser):
                 f"gsmsdr: mixres-data needs a COLMAP model: none in {looked} (cameras + images .bin/.txt). Run "
                 "COLMAP on the images (Mip-NeRF 360 scenes ship sparse/0)."
             )
-        return self.read_colmap(recon)
+        return self.colmap_source(recon)
 
     def train_images(self, names: List[str], files: List[Path]) -> MixresImages:
         if self._train_images is None:

@@ -166,7 +166,7 @@ class SortedSceneParser(DataParser):
 
     # --- cameras -----------------------------------------------------------------------------------------------
 
-    def read_colmap(self, recon_dir: Path) -> SceneSource:
+    def colmap_source(self, recon_dir: Path) -> SceneSource:
         """Cameras and points of a COLMAP model, paired with their files; every image on disk must have a pose."""
         images_dir = self.images_dir()
         model = read_colmap(recon_dir)
