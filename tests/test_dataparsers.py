@@ -20,17 +20,11 @@ from PIL import Image, ImageFilter
 
 from nerfstudio.data.utils import colmap_parsing_utils as colmap_io
 
-from gsmsdr_ns.data.cameras import (
-    depth_bounds,
-    llff_to_opencv,
-    opencv_to_llff,
-    read_colmap_cameras,
-    read_colmap_points,
-    write_poses_bounds,
-)
-from gsmsdr_ns.data.errors import GSMSDRDataError, GSMSDRDataWarning
+from gsmsdr_ns.data.cameras import cameras_from_colmap, depth_bounds, llff_to_opencv, opencv_to_llff, write_poses_bounds
 from gsmsdr_ns.data.layout import detect_layout
 from gsmsdr_ns.data.mixres import MIXRES_FACTORS, assign_mixres_factors, downscale_upscale
+from gsmsdr_ns.io.colmap import read_colmap
+from gsmsdr_ns.io.errors import InputError, InputWarning
 from gsmsdr_ns.plugin.auto_dataparser import GSMSDRAutoDataParser, GSMSDRAutoDataParserConfig
 from gsmsdr_ns.plugin.dataparser import GSMSDRDataParser, GSMSDRDataParserConfig
 from gsmsdr_ns.plugin.deblur_dataparser import DeblurNerfDataParser, DeblurNerfDataParserConfig
@@ -91,8 +85,9 @@ def make_deblur_scene(
     if hold is not None:
         (dst / f"hold={hold}").touch()
     if poses_bounds:
-        cameras = read_colmap_cameras(src / "sparse" / "0")
-        bounds = depth_bounds(cameras, read_colmap_points(src / "sparse" / "0")[0])
+        model = read_colmap(src / "sparse" / "0")
+        cameras = cameras_from_colmap(model)
+        bounds = depth_bounds(cameras, model.points.xyz)
         write_poses_bounds(dst / "poses_bounds.npy", cameras, bounds)
     if degradation:
         doc = {"version": 1, "generator": "test", "source": str(src), "seed": 0, "hold": every,
@@ -244,16 +239,16 @@ def test_images_n_and_camera_size_mismatch_rescale_intrinsics(deblur_scene):
     # a file that is not a rescaled copy of what the camera describes is an error naming it
     bad = deblur_scene / "images" / "frame_00001.png"
     Image.open(bad).resize((64, 64)).save(bad)
-    with pytest.raises(GSMSDRDataError, match=rf"image file '{bad}' is 64x64 px but its camera is 128x96 px"):
+    with pytest.raises(InputError, match=rf"image file '{bad}' is 64x64 px but its camera is 128x96 px"):
         parse_deblur(deblur_scene, "train")
 
 
 def test_missing_hold_file_defaults_to_8_with_warning(synth16, tmp_path):
     scene = make_deblur_scene(synth16, tmp_path / "s", hold=None, degradation=False)
-    with pytest.warns(GSMSDRDataWarning, match=r"no 'hold=N' file .* every 8th view"):
+    with pytest.warns(InputWarning, match=r"no 'hold=N' file .* every 8th view"):
         outputs = parse_deblur(scene, "test")
     assert names_of(outputs) == TEST_NAMES
-    with pytest.warns(GSMSDRDataWarning):
+    with pytest.warns(InputWarning):
         records = parse_deblur(scene, "train").metadata["degradations"]
     assert all(r["degraded"] is None and r["mixres_factor"] is None for r in records)  # no degradation.json
 
@@ -261,18 +256,18 @@ def test_missing_hold_file_defaults_to_8_with_warning(synth16, tmp_path):
 def test_degradation_json_names_the_hold_when_the_file_is_missing(synth16, tmp_path):
     scene = make_deblur_scene(synth16, tmp_path / "s", hold=None)  # degradation.json says hold 8
     with warnings.catch_warnings():
-        warnings.simplefilter("error", GSMSDRDataWarning)
+        warnings.simplefilter("error", InputWarning)
         assert names_of(parse_deblur(scene, "test")) == TEST_NAMES
 
 
 def test_degradation_json_that_contradicts_the_hold_is_an_error(deblur_scene):
     (deblur_scene / "hold=8").rename(deblur_scene / "hold=4")
-    with pytest.raises(GSMSDRDataError, match=r"holdout interval .* is 4 .*degradation.json' says hold 8"):
+    with pytest.raises(InputError, match=r"holdout interval .* is 4 .*degradation.json' says hold 8"):
         parse_deblur(deblur_scene)
     doc = json.loads((deblur_scene / "degradation.json").read_text())
     del doc["hold"]
     (deblur_scene / "degradation.json").write_text(json.dumps(doc))
-    with pytest.raises(GSMSDRDataError, match=r"puts image 'frame_00004.png' .* in the train split, but hold=4"):
+    with pytest.raises(InputError, match=r"puts image 'frame_00004.png' .* in the train split, but hold=4"):
         parse_deblur(deblur_scene)
 
 
@@ -387,13 +382,13 @@ BAD_INPUT = {  # case: (edit of a valid scene, the error it must give)
 def test_bad_input_gives_a_clear_error(case, synth16, tmp_path):
     edit, message = BAD_INPUT[case]
     scene = edit(make_deblur_scene(synth16, tmp_path / "s"))
-    with pytest.raises(GSMSDRDataError, match=message):
+    with pytest.raises(InputError, match=message):
         parse_deblur(scene, "train")
 
 
 def test_missing_sharp_twin_is_named(deblur_scene):
     (deblur_scene / "images_test" / "frame_00008.png").unlink()
-    with pytest.raises(GSMSDRDataError, match=r"image 'frame_00008.png' is listed in .*sharp twin.* does not exist"):
+    with pytest.raises(InputError, match=r"image 'frame_00008.png' is listed in .*sharp twin.* does not exist"):
         parse_deblur(deblur_scene, "test")
 
 
@@ -491,7 +486,7 @@ def test_mixres_cache_path_option(colmap_scene, tmp_path):
 def write_transforms_json(src: Path, dst: Path) -> Path:
     """A nerfstudio transforms.json scene (OpenGL camera-to-world) from a COLMAP scene."""
     shutil.copytree(src / "images", dst / "images")
-    cameras = read_colmap_cameras(src / "sparse" / "0")
+    cameras = cameras_from_colmap(read_colmap(src / "sparse" / "0"))
     frames = []
     for name, c2w, (fx, fy, cx, cy), (w, h) in zip(cameras.names, cameras.c2w, cameras.intrinsics, cameras.sizes):
         gl = c2w.copy()
@@ -545,7 +540,7 @@ def test_auto_detection_picks_the_reader_and_says_why(kind, synth16, tmp_path, c
     parser = GSMSDRAutoDataParserConfig(data=scene).setup()
     assert isinstance(parser, GSMSDRAutoDataParser)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", GSMSDRDataWarning)
+        warnings.simplefilter("ignore", InputWarning)
         train = parser.get_dataparser_outputs("train")
         test = parser.get_dataparser_outputs("test")
     lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("gsmsdr-data:")]
@@ -563,7 +558,7 @@ def test_transforms_json_scene_reads_back_through_gsmsdr_data(synth16, tmp_path)
     reference = DeblurNerfDataParserConfig(data=synth16, orientation_method="none", center_method="none",
                                            auto_scale_poses=False).setup()  # fmt: skip
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", GSMSDRDataWarning)
+        warnings.simplefilter("ignore", InputWarning)
         reference.get_dataparser_outputs("train")
     scene_cams = reference.load_scene().cameras
     index = {name: i for i, name in enumerate(scene_cams.names)}
@@ -580,7 +575,7 @@ def test_transforms_json_scene_reads_back_through_gsmsdr_data(synth16, tmp_path)
 
 def test_unknown_layout_lists_what_was_looked_for(tmp_path):
     (tmp_path / "photos").mkdir()
-    with pytest.raises(GSMSDRDataError, match=r"cannot tell what kind of scene .*Looked for: a Deblur-NeRF scene .*"
+    with pytest.raises(InputError, match=r"cannot tell what kind of scene .*Looked for: a Deblur-NeRF scene .*"
                        r"sparse/0 or colmap/sparse/0.*transforms.json.*poses_bounds.npy.*Found: photos/"):  # fmt: skip
         GSMSDRAutoDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
     (tmp_path / "x.json").write_text("{}")

@@ -20,7 +20,6 @@ from conftest import run_cli
 from gsmsdr_ns.degrade import (
     DefocusConfig,
     DegradeConfig,
-    DegradeInputError,
     LayeredDefocus,
     MotionConfig,
     NoiseConfig,
@@ -50,7 +49,8 @@ from gsmsdr_ns.degrade.cli import parse as degrade_parse
 from gsmsdr_ns.degrade.trajectory import rotvec_to_matrix
 from gsmsdr_ns.degrade.variants import BUILTIN_PRESETS
 from gsmsdr_ns.synth.cli import parse as synth_parse
-from gsmsdr_ns.synth.colmap_io import read_colmap_cameras
+from gsmsdr_ns.io.colmap import read_colmap
+from gsmsdr_ns.io.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -391,26 +391,26 @@ def test_degraded_layout_and_metadata(tiny_scene, motion_scene):
 
 
 def test_degraded_scene_model_and_llff_poses(tiny_scene, motion_scene):
-    src = read_colmap_cameras(tiny_scene / "sparse" / "0")
-    out = read_colmap_cameras(motion_scene / "sparse" / "0")
-    assert out["names"] == src["names"] and out["sizes"] == src["sizes"]
-    np.testing.assert_allclose(out["w2cs"], src["w2cs"], atol=1e-9)
-    np.testing.assert_allclose(out["Ks"], src["Ks"])
+    src = read_colmap(tiny_scene / "sparse" / "0")
+    out = read_colmap(motion_scene / "sparse" / "0")
+    assert out.names == src.names and np.array_equal(out.sizes, src.sizes)
+    np.testing.assert_allclose(out.w2c, src.w2c, atol=1e-9)
+    np.testing.assert_allclose(out.Ks, src.Ks)
     rec_in = pycolmap.Reconstruction(str(tiny_scene / "sparse" / "0"))
     rec = pycolmap.Reconstruction(str(motion_scene / "sparse" / "0"))
     assert {c.model.name for c in rec.cameras.values()} == {"PINHOLE"}
     assert rec.num_points3D() == rec_in.num_points3D()
     pb = np.load(motion_scene / "poses_bounds.npy")
     assert pb.shape == (10, 17)
-    c2w = np.linalg.inv(src["w2cs"])
+    c2w = np.linalg.inv(src.w2c)
     for v in range(10):
         P = pb[v, :15].reshape(3, 5)
         # LLFF columns (down, right, back) -> OpenCV (right, down, forward)
         np.testing.assert_allclose(np.c_[P[:, 1], P[:, 0], -P[:, 2]], c2w[v, :3, :3], atol=1e-9)
         np.testing.assert_allclose(P[:, 3], c2w[v, :3, 3], atol=1e-9)
-        np.testing.assert_allclose(P[:, 4], [48, 64, src["Ks"][v][0, 0]])
+        np.testing.assert_allclose(P[:, 4], [48, 64, src.Ks[v][0, 0]])
         near, far = pb[v, 15:]
-        depth = np.load(tiny_scene / "depth" / (Path(src["names"][v]).stem + ".npy"))
+        depth = np.load(tiny_scene / "depth" / (Path(src.names[v]).stem + ".npy"))
         assert 0 < near < far and depth.min() * 0.5 < near and far < depth.max() * 2
 
 
@@ -466,11 +466,11 @@ def test_one_per_image_assignment(tiny_scene, tmp_path):
 
 def _colmap_to_transforms(scene: Path, out: Path) -> Path:
     """A nerfstudio transforms.json copy of a COLMAP scene (OpenGL camera-to-world poses), without sparse/."""
-    cams = read_colmap_cameras(scene / "sparse" / "0")
+    cams = read_colmap(scene / "sparse" / "0")
     (out / "pics").mkdir(parents=True)
-    K, (w, h) = cams["Ks"][0], cams["sizes"][0]
+    K, (w, h) = cams.Ks[0], (int(v) for v in cams.sizes[0])
     frames = []
-    for name, w2c in zip(cams["names"], cams["w2cs"]):
+    for name, w2c in zip(cams.names, cams.w2c):
         jpg = Path(name).stem + ".jpg"  # JPEG input: the degraded scene names it <stem>.png
         Image.open(scene / "images" / name).save(out / "pics" / jpg, quality=95)
         c2w_gl = np.linalg.inv(w2c) @ np.diag([1.0, -1.0, -1.0, 1.0])
@@ -485,16 +485,16 @@ def _colmap_to_transforms(scene: Path, out: Path) -> Path:
 def test_transforms_json_scene_degraded_and_read_back(tiny_scene, tmp_path):
     src = _colmap_to_transforms(tiny_scene, tmp_path / "ns")
     out = degrade_scene(src, tmp_path / "deg", cfg("motion", "defocus"))
-    cams_in = read_colmap_cameras(tiny_scene / "sparse" / "0")
-    cams = read_colmap_cameras(out / "sparse" / "0")
-    assert cams["names"] == cams_in["names"]
-    np.testing.assert_allclose(cams["w2cs"], cams_in["w2cs"], atol=1e-9)
-    np.testing.assert_allclose(cams["Ks"], cams_in["Ks"], atol=1e-9)
+    cams_in = read_colmap(tiny_scene / "sparse" / "0")
+    cams = read_colmap(out / "sparse" / "0")
+    assert cams.names == cams_in.names
+    np.testing.assert_allclose(cams.w2c, cams_in.w2c, atol=1e-9)
+    np.testing.assert_allclose(cams.Ks, cams_in.Ks, atol=1e-9)
     doc = json.loads((out / "degradation.json").read_text())
     rec = doc["images"]["frame_00003.png"]["effects"]
     assert rec["motion"]["model"] == "rotational_shake" and rec["defocus"]["model"] == "disk"  # photos: no depth
     assert "translations" not in rec["motion"]
-    for name in cams["names"]:  # lossless PNG twins of the decoded JPEGs; test views identical to them
+    for name in cams.names:  # lossless PNG twins of the decoded JPEGs; test views identical to them
         sharp = load_png(src / "pics" / (Path(name).stem + ".jpg"))
         np.testing.assert_array_equal(load_png(out / "images_test" / name), sharp)
         if doc["images"][name]["split"] == "test":
@@ -516,9 +516,9 @@ def _copy(tiny_scene: Path, dst: Path) -> Path:
     [
         ("no_cameras", r"no COLMAP model \(sparse/0/\) and no transforms.json"),
         ("missing_image", r"frame_00003.png is listed in sparse/0 but missing"),
-        ("corrupted_image", r"cannot decode image .*frame_00004.png"),
-        ("zero_size_image", r"empty \(0 bytes\).*frame_00002.png"),
-        ("wrong_size_image", r"frame_00006.png is 32x24 but its camera says 64x48"),
+        ("corrupted_image", r"cannot read image file '.*frame_00004.png'"),
+        ("zero_size_image", r"image file '.*frame_00002.png' is empty \(0 bytes\)"),
+        ("wrong_size_image", r"frame_00006.png' is 32x24 px but its camera says 64x48 px"),
     ],
 )
 def test_bad_input_is_refused_with_a_clear_error(tiny_scene, tmp_path, breakage, message):
@@ -534,7 +534,7 @@ def test_bad_input_is_refused_with_a_clear_error(tiny_scene, tmp_path, breakage,
         (scene / "images" / "frame_00002.png").write_bytes(b"")
     else:
         Image.new("RGB", (32, 24)).save(scene / "images" / "frame_00006.png")
-    with pytest.raises(DegradeInputError, match=message):
+    with pytest.raises(InputError, match=message):
         degrade_scene(scene, tmp_path / "out", cfg("motion"))
     assert not (tmp_path / "out").exists() and leftovers(tmp_path) == []
 
@@ -552,7 +552,7 @@ def test_bad_config_is_refused(tiny_scene, tmp_path):
         bad = tmp_path / "bad.yaml"
         bad.write_text("effects: [motion]\nmotion:\n  blur: 3\n")
         load_preset(bad)
-    with pytest.raises(DegradeInputError, match="already a degraded scene"):
+    with pytest.raises(InputError, match="already a degraded scene"):
         (tmp_path / "deg").mkdir()
         (tmp_path / "deg" / "degradation.json").write_text("{}")
         degrade_scene(tmp_path / "deg", tmp_path / "o2", cfg("motion"))

@@ -12,7 +12,8 @@ from conftest import run_cli
 from nerfstudio.data.utils import colmap_parsing_utils as colmap_io
 from PIL import Image
 
-from gsmsdr_ns.plugin.dataparser import GSMSDRDataError, GSMSDRDataParserConfig
+from gsmsdr_ns.io.errors import InputError
+from gsmsdr_ns.plugin.dataparser import GSMSDRDataParserConfig
 from gsmsdr_ns.plugin.method_config import gsmsdr_trainer_config
 from gsmsdr_ns.plugin.model import GSMSDRWarning
 
@@ -50,13 +51,13 @@ def test_valid_scene_parses(tiny_scene):
 
 def test_missing_data_path(tmp_path):
     missing = tmp_path / "no-such-scene"
-    with pytest.raises(GSMSDRDataError, match=rf"'{missing}' does not exist.*--data"):
+    with pytest.raises(InputError, match=rf"'{missing}' does not exist.*--data"):
         parse(missing)
 
 
 def test_directory_without_colmap_model(tmp_path):
     (tmp_path / "images").mkdir()
-    with pytest.raises(GSMSDRDataError, match=r"no COLMAP model in '.*sparse/0'"):
+    with pytest.raises(InputError, match=r"no COLMAP model in '.*sparse/0'"):
         parse(tmp_path)
 
 
@@ -64,28 +65,28 @@ def test_truncated_image_names_the_file(scene):
     image = first_image(scene)
     data = image.read_bytes()
     image.write_bytes(data[: len(data) // 2])
-    with pytest.raises(GSMSDRDataError, match=rf"cannot read image file '{image}'.*truncated"):
+    with pytest.raises(InputError, match=rf"cannot read image file '{image}'.*truncated"):
         parse(scene)
 
 
 def test_unreadable_image_names_the_file(scene):
     image = first_image(scene)
     image.write_bytes(b"this is not a png")
-    with pytest.raises(GSMSDRDataError, match=rf"cannot read image file '{image}'"):
+    with pytest.raises(InputError, match=rf"cannot read image file '{image}'"):
         parse(scene)
 
 
 def test_missing_image_names_the_file(scene):
     image = first_image(scene)
     image.unlink()
-    with pytest.raises(GSMSDRDataError, match=rf"'{image}' is listed in the COLMAP model but does not exist"):
+    with pytest.raises(InputError, match=rf"'{image}' is listed in the COLMAP model but does not exist"):
         parse(scene)
 
 
 def test_image_size_differs_from_camera(scene):
     image = first_image(scene)
     Image.open(image).resize((32, 24)).save(image)
-    with pytest.raises(GSMSDRDataError, match=rf"'{image}' is 32x24 px but its COLMAP camera says 64x48 px"):
+    with pytest.raises(InputError, match=rf"'{image}' is 32x24 px but its COLMAP camera says 64x48 px"):
         parse(scene)
 
 
@@ -104,7 +105,7 @@ def test_non_finite_camera_pose_names_the_image(scene, field):
 
     rewrite_model_as_text(scene, edit_images=corrupt)
     name = sorted((scene / "images").iterdir())[2].name
-    with pytest.raises(GSMSDRDataError, match=rf"image '{name}' .* non-finite or degenerate camera pose"):
+    with pytest.raises(InputError, match=rf"image '{name}' .* non-finite or degenerate camera pose"):
         parse(scene)
 
 
@@ -142,5 +143,5 @@ def test_ns_train_reports_a_truncated_image_by_name(scene, tmp_path):
     ]
     proc = run_cli("ns-train", args, cwd=tmp_path)
     assert proc.returncode != 0
-    assert f"GSMSDRDataError: gsmsdr: cannot read image file '{image}'" in proc.stderr
+    assert f"InputError: gsmsdr: cannot read image file '{image}'" in proc.stderr
     assert not list((tmp_path / "out").rglob("*.ckpt"))

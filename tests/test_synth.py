@@ -15,7 +15,7 @@ from PIL import Image
 from gsmsdr_ns.synth import generate as gen_mod
 from gsmsdr_ns.synth.cameras import intrinsics, orbit_cameras, project, world_to_camera
 from gsmsdr_ns.synth.cli import parse
-from gsmsdr_ns.synth.colmap_io import read_colmap_cameras
+from gsmsdr_ns.io.colmap import read_colmap
 from gsmsdr_ns.synth.config import SynthSceneConfig, config_from_dict, load_preset
 from gsmsdr_ns.synth.generate import generate_scene
 from gsmsdr_ns.synth.geometry import Sphere
@@ -138,8 +138,8 @@ def test_pycolmap_reads_cameras_and_poses(small_scene):
         image = rec.images[image_id]
         assert image.name == f"frame_{image_id - 1:05d}.png"  # ids 1..V in capture order
         np.testing.assert_allclose(_cam_from_world(image), world_to_camera(c2ws[image_id - 1]), atol=1e-9)
-    cams = read_colmap_cameras(small_scene / "sparse" / "0")
-    np.testing.assert_allclose(cams["w2cs"], world_to_camera(c2ws), atol=1e-9)
+    cams = read_colmap(small_scene / "sparse" / "0")
+    np.testing.assert_allclose(cams.w2c, world_to_camera(c2ws), atol=1e-9)
 
 
 def test_cameras_look_at_scene_and_are_upright():
@@ -310,7 +310,7 @@ def test_render_view_arbitrary_intrinsics():
 
 def test_failure_leaves_nothing(tmp_path, monkeypatch):
     calls = {"n": 0}
-    real = gen_mod.write_png
+    real = gen_mod.write_image
 
     def flaky(path, rgb):
         calls["n"] += 1
@@ -318,7 +318,7 @@ def test_failure_leaves_nothing(tmp_path, monkeypatch):
             raise RuntimeError("injected failure")
         real(path, rgb)
 
-    monkeypatch.setattr(gen_mod, "write_png", flaky)
+    monkeypatch.setattr(gen_mod, "write_image", flaky)
     target = tmp_path / "out"
     with pytest.raises(RuntimeError, match="injected"):
         generate_scene(target, SMALL)

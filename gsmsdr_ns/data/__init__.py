@@ -1,4 +1,6 @@
-"""Scene readers without nerfstudio: layouts, camera files, holdout rules, degradation metadata, mixres caches.
+"""What a scene is, without nerfstudio: layouts, scene cameras (COLMAP / LLFF), holdout rules, degradation
+metadata, mixres caches. File formats themselves (COLMAP models, images, atomic writes) are read and written by
+``gsmsdr_ns.io``.
 
 Everything here works on plain files and numpy / torch arrays, so it can be tested (and used by tools such as
 ``gsmsdr-degrade``) without importing the nerfstudio trainer. ``gsmsdr_ns.plugin`` turns the results into

@@ -1,6 +1,6 @@
 """``degradation.json`` (version 1): which images of a degraded scene are degraded, and how.
 
-The file is written by ``gsmsdr-degrade`` / ``gsmsdr-synth`` (contract: ``notes_tmp/degrade_spec.md``)::
+The file is written by ``gsmsdr-degrade`` / ``gsmsdr-synth`` (``gsmsdr_ns.degrade.pipeline`` writes it)::
 
     {"version": 1, "generator": ..., "source": ..., "seed": 0, "hold": 8, "effects": [...], "preset": ...,
      "images": {"<name>": {"split": "train" | "test", "degraded": bool, "effects": {"motion": {...}, ...}}}}
@@ -23,7 +23,7 @@ import warnings
 from pathlib import Path
 from typing import Any, Dict, Iterable, Optional
 
-from gsmsdr_ns.data.errors import GSMSDRDataError, GSMSDRDataWarning
+from gsmsdr_ns.io.errors import InputError, InputWarning
 
 SUPPORTED_VERSIONS = (1,)
 KNOWN_EFFECTS = ("motion", "defocus", "mixres", "noise")
@@ -35,30 +35,30 @@ def load_degradation_json(path: Path) -> Dict[str, Any]:
     try:
         doc = json.loads(path.read_text(encoding="utf8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise GSMSDRDataError(f"gsmsdr: cannot read '{path}': {err}. Re-create it with gsmsdr-degrade.") from err
+        raise InputError(f"gsmsdr: cannot read '{path}': {err}. Re-create it with gsmsdr-degrade.") from err
     if not isinstance(doc, dict):
-        raise GSMSDRDataError(f"gsmsdr: '{path}' must hold a JSON object, got {type(doc).__name__}.")
+        raise InputError(f"gsmsdr: '{path}' must hold a JSON object, got {type(doc).__name__}.")
     version = doc.get("version")
     if version not in SUPPORTED_VERSIONS:
-        raise GSMSDRDataError(
+        raise InputError(
             f"gsmsdr: '{path}' has version {version!r}; this gsmsdr reads version(s) {list(SUPPORTED_VERSIONS)}."
         )
     images = doc.get("images")
     if not isinstance(images, dict):
-        raise GSMSDRDataError(f"gsmsdr: '{path}' has no \"images\" object mapping image names to their entries.")
+        raise InputError(f"gsmsdr: '{path}' has no \"images\" object mapping image names to their entries.")
     for name, entry in images.items():
         if not isinstance(entry, dict):
-            raise GSMSDRDataError(f"gsmsdr: '{path}': the entry of image '{name}' is not an object.")
+            raise InputError(f"gsmsdr: '{path}': the entry of image '{name}' is not an object.")
         effects = entry.get("effects", {})
         if not isinstance(effects, dict):
-            raise GSMSDRDataError(f"gsmsdr: '{path}': \"effects\" of image '{name}' is not an object.")
+            raise InputError(f"gsmsdr: '{path}': \"effects\" of image '{name}' is not an object.")
         factor = effects.get("mixres", {}).get("factor", 1) if isinstance(effects.get("mixres"), dict) else 1
         if not isinstance(factor, int) or isinstance(factor, bool) or factor < 1:
-            raise GSMSDRDataError(
+            raise InputError(
                 f"gsmsdr: '{path}': image '{name}' has mixres factor {factor!r}; it must be an integer >= 1."
             )
         if entry.get("split") not in (None, "train", "test"):
-            raise GSMSDRDataError(
+            raise InputError(
                 f"gsmsdr: '{path}': image '{name}' has split {entry.get('split')!r}; expected \"train\" or \"test\"."
             )
     return doc
@@ -92,7 +92,7 @@ def match_entries(
     """Map each scene image name to its degradation.json entry (None when missing, with one warning).
 
     Entries may be keyed by the exact name or by a name with the same stem (downscaled copies are often PNG). An
-    entry that matches no image means the file belongs to another scene: :class:`GSMSDRDataError`.
+    entry that matches no image means the file belongs to another scene: :class:`InputError`.
     """
     names = list(names)
     entries: Dict[str, Dict[str, Any]] = doc["images"]
@@ -106,7 +106,7 @@ def match_entries(
             used.add(key)
     stray = sorted(set(entries) - used)
     if stray:
-        raise GSMSDRDataError(
+        raise InputError(
             f"gsmsdr: '{path}' describes {len(stray)} image(s) that are not in the scene, e.g. {stray[:3]}: the file "
             "belongs to another scene or the images were renamed. Re-create it with gsmsdr-degrade."
         )
@@ -115,7 +115,7 @@ def match_entries(
         warnings.warn(
             f"gsmsdr: '{path}' does not describe {len(missing)} image(s) (e.g. {missing[:3]}); their degradation is "
             "treated as unknown.",
-            GSMSDRDataWarning,
+            InputWarning,
             stacklevel=2,
         )
     return matched

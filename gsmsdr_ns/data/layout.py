@@ -23,8 +23,8 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 
-from gsmsdr_ns.data.cameras import has_colmap_model
-from gsmsdr_ns.data.errors import GSMSDRDataError, GSMSDRDataWarning
+from gsmsdr_ns.io.colmap import has_colmap_model
+from gsmsdr_ns.io.errors import InputError, InputWarning
 
 HOLD_PREFIX = "hold="
 DEFAULT_HOLD = 8
@@ -49,8 +49,8 @@ def hold_files(data: Path) -> List[Path]:
 def read_hold(data: Path, default: int = DEFAULT_HOLD) -> Tuple[int, str]:
     """The scene's holdout interval N from its ``hold=N`` file, and where it came from (for messages).
 
-    No file: ``default`` with a :class:`GSMSDRDataWarning`. Several files, a value that is not an integer, or a
-    value below 1: :class:`GSMSDRDataError`.
+    No file: ``default`` with a :class:`InputWarning`. Several files, a value that is not an integer, or a
+    value below 1: :class:`InputError`.
     """
     data = Path(data)
     files = hold_files(data)
@@ -58,24 +58,24 @@ def read_hold(data: Path, default: int = DEFAULT_HOLD) -> Tuple[int, str]:
         warnings.warn(
             f"gsmsdr: no 'hold=N' file in '{data}'; holding out every {default}th view (sorted by file name) as a "
             f"test view. Create an empty file named 'hold=N' in the scene to choose N.",
-            GSMSDRDataWarning,
+            InputWarning,
             stacklevel=2,
         )
         return default, f"default (no hold=N file in {data})"
     if len(files) > 1:
-        raise GSMSDRDataError(
+        raise InputError(
             f"gsmsdr: '{data}' has several hold files ({', '.join(p.name for p in files)}); keep exactly one "
             "'hold=N' file."
         )
     text = files[0].name[len(HOLD_PREFIX) :]
     if not re.fullmatch(r"[+-]?\d+", text.strip()):
-        raise GSMSDRDataError(
+        raise InputError(
             f"gsmsdr: cannot read the holdout interval from '{files[0]}': '{text}' is not an integer. Name the file "
             "'hold=N' with N >= 1 (every N-th view, sorted by file name, is a test view)."
         )
     hold = int(text)
     if hold < 1:
-        raise GSMSDRDataError(
+        raise InputError(
             f"gsmsdr: '{files[0]}' sets the holdout interval to {hold}; it must be >= 1 (views whose index in "
             "file-name order is divisible by N are the test views). Rename the file, e.g. to 'hold=8'."
         )
@@ -85,7 +85,7 @@ def read_hold(data: Path, default: int = DEFAULT_HOLD) -> Tuple[int, str]:
 def holdout_split(num_images: int, hold: int) -> Tuple[np.ndarray, np.ndarray]:
     """(train, test) indices into a list sorted by file name: test = index % hold == 0, train = the rest."""
     if hold < 1:
-        raise GSMSDRDataError(f"gsmsdr: holdout interval must be >= 1, got {hold}.")
+        raise InputError(f"gsmsdr: holdout interval must be >= 1, got {hold}.")
     index = np.arange(num_images)
     test = index[index % hold == 0]
     train = index[index % hold != 0]
@@ -104,12 +104,12 @@ class LayoutChoice:
 
 
 def detect_layout(data: Path) -> LayoutChoice:
-    """Recognise the layout of ``data`` (see the module docstring); :class:`GSMSDRDataError` if none fits."""
+    """Recognise the layout of ``data`` (see the module docstring); :class:`InputError` if none fits."""
     data = Path(data)
     if data.is_file() and data.suffix.lower() == ".json":
         return LayoutChoice("nerfstudio-data", f"--data is the json file {data.name}")
     if not data.is_dir():
-        raise GSMSDRDataError(
+        raise InputError(
             f"gsmsdr: data directory '{data}' does not exist or is not a directory. Pass the scene directory with "
             "--data <dir> (make a test scene with `gsmsdr-synth`)."
         )
@@ -130,7 +130,7 @@ def detect_layout(data: Path) -> LayoutChoice:
         return LayoutChoice("deblur-nerf-data", "LLFF layout: found poses_bounds.npy and no COLMAP model")
     found = sorted(p.name + ("/" if p.is_dir() else "") for p in data.iterdir())
     shown = ", ".join(found[:12]) + (f", ... ({len(found)} entries)" if len(found) > 12 else "") if found else "nothing"
-    raise GSMSDRDataError(
+    raise InputError(
         f"gsmsdr: cannot tell what kind of scene '{data}' is. Looked for: {'; '.join(LOOKED_FOR)}. Found: {shown}. "
         "Fix the layout, or name a dataparser explicitly (e.g. `ns-train gsmsdr --data <dir> colmap`)."
     )

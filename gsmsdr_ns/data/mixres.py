@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import secrets
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +23,8 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from gsmsdr_ns.data.images import read_image, write_image
+from gsmsdr_ns.io.atomic import replace_dir, temp_sibling_dir
+from gsmsdr_ns.io.images import read_image, write_image
 
 MIXRES_FACTORS = (4, 3, 2, 1)
 """Downscale factors of the four training groups (paper section 4.2)."""
@@ -113,21 +113,6 @@ def _load_valid(cache_dir: Path, key: Dict) -> Optional[Dict]:
     return manifest
 
 
-def _swap_into_place(tmp: Path, target: Path) -> None:
-    old = None
-    if target.exists():
-        old = target.parent / f".{target.name}.old-{os.getpid()}-{secrets.token_hex(4)}"
-        os.rename(target, old)
-    try:
-        os.rename(tmp, target)
-    except BaseException:
-        if old is not None and not target.exists():
-            os.rename(old, target)
-        raise
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
-
-
 def mixres_cache(
     scene_dir: Path,
     cache_dir: Path,
@@ -174,9 +159,7 @@ def _build(
     key: Dict,
     seed: int,
 ) -> Dict:
-    cache_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = cache_dir.parent / f".{cache_dir.name}.partial-{os.getpid()}-{secrets.token_hex(4)}"
-    tmp.mkdir()
+    tmp = temp_sibling_dir(cache_dir)
     try:
         images = {}
         for name, source, factor in zip(names, sources, assigned):
@@ -200,7 +183,7 @@ def _build(
         with open(tmp / MANIFEST, "w", encoding="utf8") as f:
             json.dump(manifest, f, indent=1)
         try:
-            _swap_into_place(tmp, cache_dir)
+            replace_dir(tmp, cache_dir)
         except OSError:
             # Another process may have finished the same cache first: use it if it is valid.
             other = _load_valid(cache_dir, key)

@@ -41,7 +41,7 @@ from .kernels import (
     rotational_shake_blur,
 )
 from .pipeline import degrade_scene, llff_poses_bounds
-from .source import DegradeInputError, SourceScene, load_source, read_image
+from .source import SourceScene, load_source
 from .trajectory import ShakeTrajectory, calibrated_shake, pixel_paths
 from .variants import VARIANTS, generate_variant
 
@@ -58,10 +58,8 @@ __all__ = [
     "generate_variant",
     "VARIANTS",
     "llff_poses_bounds",
-    "DegradeInputError",
     "SourceScene",
     "load_source",
-    "read_image",
     "ShakeTrajectory",
     "calibrated_shake",
     "pixel_paths",

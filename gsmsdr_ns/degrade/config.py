@@ -6,15 +6,15 @@ wide and scaled by width / px_reference_width, so one preset means the same rela
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Tuple
 
 import tyro
-import yaml
 from typing_extensions import Annotated
+
+from ..io.config import load_dataclass, read_yaml_mapping
 
 EFFECTS = ("motion", "defocus", "mixres", "noise")
 """Valid effect names, in the order they are applied to an image (optics and camera motion, then the sensor)."""
@@ -208,32 +208,16 @@ def normalize_effects(effects: Iterable[str]) -> tuple[str, ...]:
     return tuple(e for e in EFFECTS if e in names)
 
 
-_NESTED = {"motion": MotionConfig, "defocus": DefocusConfig, "mixres": MixresConfig, "noise": NoiseConfig}
-
-
-def _overlay(cls: type, base: Any, values: Mapping[str, Any], where: str) -> Any:
-    known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise ValueError(f"unknown {where} keys: {unknown}; valid keys: {sorted(known)}")
-    return dataclasses.replace(base, **dict(values))
-
-
-def config_from_dict(values: Mapping[str, Any], base: DegradeConfig | None = None) -> DegradeConfig:
-    """Overlay a (nested) mapping on `base` (default config); unknown keys are an error, not silently ignored."""
-    base = base if base is not None else DegradeConfig()
+def config_from_dict(
+    values: Mapping[str, Any], base: DegradeConfig | None = None, source: str | Path | None = None
+) -> DegradeConfig:
+    """Overlay a (nested) mapping on `base` (default config); unknown keys and wrong types are an InputError naming
+    `source` and the key, not silently ignored. `effects` may be one comma-separated string."""
     values = dict(values)
-    nested = {}
-    for key, cls in _NESTED.items():
-        if key in values:
-            sub = values.pop(key) or {}
-            if not isinstance(sub, Mapping):
-                raise ValueError(f"'{key}' must be a mapping of {cls.__name__} fields, got {type(sub).__name__}")
-            nested[key] = _overlay(cls, getattr(base, key), sub, key)
     if "effects" in values:
         effects = values["effects"]
         values["effects"] = (effects,) if isinstance(effects, str) else tuple(effects or ())
-    return _overlay(DegradeConfig, dataclasses.replace(base, **nested), values, "DegradeConfig")
+    return load_dataclass(DegradeConfig, values, source, base if base is not None else DegradeConfig())
 
 
 def load_preset(path: str | Path) -> DegradeConfig:
@@ -241,11 +225,4 @@ def load_preset(path: str | Path) -> DegradeConfig:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"degradation preset {path} not found")
-    with open(path, encoding="utf8") as f:
-        values = yaml.safe_load(f) or {}
-    if not isinstance(values, dict):
-        raise ValueError(f"preset {path} must be a YAML mapping, got {type(values).__name__}")
-    try:
-        return config_from_dict(values)
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"preset {path}: {e}") from e
+    return config_from_dict(read_yaml_mapping(path), source=path)

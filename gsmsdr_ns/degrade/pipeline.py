@@ -17,7 +17,6 @@ import dataclasses
 import json
 import multiprocessing
 import os
-import secrets
 import shutil
 from collections.abc import Callable
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
@@ -30,9 +29,11 @@ from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 
 from .. import __version__
 from ..data.cameras import llff_poses_bounds_rows
-from ..synth.colmap_io import write_colmap_model
+from ..io.atomic import atomic_dir
+from ..io.colmap import write_colmap_model
+from ..io.images import read_image_float, write_image
 from ..synth.config import SynthSceneConfig
-from ..synth.generate import check_target, commit_dir, to_uint8, write_png
+from ..synth.generate import check_target, to_uint8
 from .config import BLUR_EFFECTS, DegradeConfig
 from .effects import (
     ViewContext,
@@ -44,7 +45,7 @@ from .effects import (
     view_rng,
 )
 from .kernels import mixres_factors
-from .source import SourceScene, load_depth, load_source, read_image
+from .source import SourceScene, load_depth, load_source
 
 FORMAT_VERSION = 1
 GENERATOR = f"gsmsdr-degrade {__version__}"
@@ -123,13 +124,13 @@ def degrade_view(job: ViewJob) -> dict:
         shutil.copyfile(job.src_path, sharp_out)  # same pixels as re-encoding, without the encoding cost
         sharp = None
     else:
-        sharp = read_image(job.src_path, job.size)
-        write_png(sharp_out, to_uint8(sharp))
+        sharp = read_image_float(job.src_path, job.size)
+        write_image(sharp_out, to_uint8(sharp))
     if job.split == "test" or not job.effects:
         shutil.copyfile(sharp_out, job.out_root / "images" / job.name)
         return {"split": job.split, "degraded": False, "effects": {}}
     if sharp is None:
-        sharp = read_image(job.src_path, job.size)
+        sharp = read_image_float(job.src_path, job.size)
     width, height = job.size
     scale = width / cfg.px_reference_width if cfg.px_reference_width > 0 else 1.0
     needs_depth = "defocus" in job.effects or ("motion" in job.effects and job.synth_config is not None)
@@ -152,7 +153,7 @@ def degrade_view(job: ViewJob) -> dict:
     if "noise" in job.effects:
         x, records["noise"] = noise_effect(x, cfg.noise, view_rng(cfg.seed, "noise", job.index))
     out = x[0].permute(1, 2, 0).clamp(0.0, 1.0).numpy()
-    write_png(job.out_root / "images" / job.name, to_uint8(out))
+    write_image(job.out_root / "images" / job.name, to_uint8(out))
     degraded = any(e != "mixres" or job.mixres_factor != 1 for e in records)
     return {"split": job.split, "degraded": degraded, "effects": records}
 
@@ -306,10 +307,7 @@ def degrade_scene(
         raise ValueError(f"the output {out} must not be (or contain) the input scene {inp}")
     check_target(out, overwrite)
     src = load_source(inp)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}-{secrets.token_hex(4)}"
-    tmp.mkdir()
-    try:
+    with atomic_dir(out) as tmp:
         (tmp / "images").mkdir()
         (tmp / "images_test").mkdir()
         jobs = plan_views(src, cfg, tmp)
@@ -317,10 +315,6 @@ def degrade_scene(
         meta = {"generator": generator, "source": source_label or str(inp), "preset": preset}
         _write_metadata(tmp, src, jobs, records, meta, cfg)
         check_target(out, overwrite)  # re-check: something may have appeared meanwhile
-        commit_dir(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out
 
 

@@ -12,21 +12,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pycolmap
-from skimage import io as skio
-from skimage.util import img_as_float32
 
+from ..io.colmap import ColmapModel, read_colmap
+from ..io.errors import InputError
+from ..io.images import read_image_float
 from ..synth.cameras import world_to_camera
 from ..synth.config import SynthSceneConfig, config_from_dict
 from ..synth.points import SparsePoints
 
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiplying a camera-to-world pose flips its camera y and z axes (OpenGL <-> OpenCV)."""
-_NO_DISTORTION_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
-
-
-class DegradeInputError(ValueError):
-    """The input scene cannot be degraded; the message names the file or field that is wrong."""
 
 
 @dataclass
@@ -51,51 +46,6 @@ def _out_name(name: str) -> str:
     return "__".join([*p.parent.parts, p.stem]) + ".png" if p.parent.parts else p.stem + ".png"
 
 
-def read_image(path: Path, expected_size: tuple[int, int] | None = None) -> np.ndarray:
-    """Decode an image file to float32 RGB [H, W, 3] in [0, 1] (grey replicated, alpha dropped, 16 bit scaled).
-
-    Raises DegradeInputError naming the file when it is missing, empty, undecodable, has no pixels, or its size
-    differs from expected_size (width, height).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise DegradeInputError(f"image file missing: {path}")
-    if path.stat().st_size == 0:
-        raise DegradeInputError(f"image file is empty (0 bytes): {path}")
-    try:
-        img = skio.imread(path)
-    except Exception as e:  # the decoders raise many types (OSError, ValueError, SyntaxError, ...)
-        raise DegradeInputError(f"cannot decode image {path} (corrupted or not an image): {e}") from e
-    img = np.asarray(img)
-    if img.ndim == 2:
-        img = np.repeat(img[..., None], 3, axis=-1)
-    if img.ndim != 3 or img.shape[-1] not in (1, 3, 4):
-        raise DegradeInputError(f"image {path} has unsupported shape {img.shape} (need H x W x 1/3/4)")
-    if img.shape[0] == 0 or img.shape[1] == 0:
-        raise DegradeInputError(f"image {path} has zero size ({img.shape[1]}x{img.shape[0]} pixels)")
-    if img.shape[-1] == 1:
-        img = np.repeat(img, 3, axis=-1)
-    img = img_as_float32(img[..., :3])
-    if expected_size is not None and (img.shape[1], img.shape[0]) != tuple(expected_size):
-        raise DegradeInputError(
-            f"image {path} is {img.shape[1]}x{img.shape[0]} but its camera says {expected_size[0]}x{expected_size[1]}"
-        )
-    return img
-
-
-def _pinhole_K(cam: pycolmap.Camera, where: str) -> np.ndarray:
-    model = cam.model.name
-    if model not in _NO_DISTORTION_MODELS:
-        names = [s.strip() for s in cam.params_info.split(",")]
-        dist = [float(v) for n, v in zip(names, cam.params) if n not in ("f", "fx", "fy", "cx", "cy")]
-        if any(abs(d) > 0 for d in dist):
-            raise DegradeInputError(
-                f"{where}: camera {cam.camera_id} uses model {model} with distortion {dist}; degrading needs "
-                "undistorted pinhole images (run `colmap image_undistorter` first)"
-            )
-    return cam.calibration_matrix()
-
-
 def _synth_config(root: Path) -> SynthSceneConfig | None:
     meta_path = root / "scene.json"
     if not meta_path.is_file():
@@ -103,72 +53,58 @@ def _synth_config(root: Path) -> SynthSceneConfig | None:
     try:
         meta = json.loads(meta_path.read_text(encoding="utf8"))
     except (OSError, ValueError) as e:
-        raise DegradeInputError(f"cannot read {meta_path}: {e}") from e
+        raise InputError(f"cannot read {meta_path}: {e}") from e
     if meta.get("generator") != "gsmsdr_ns.synth" or "config" not in meta:
         return None
     try:
-        return config_from_dict(meta["config"])
-    except (TypeError, ValueError) as e:
-        raise DegradeInputError(f"{meta_path}: invalid generator config: {e}") from e
+        return config_from_dict(meta["config"], source=meta_path)
+    except InputError as e:
+        raise InputError(f"invalid generator config: {e}") from e
 
 
 def _load_colmap(root: Path, model_dir: Path) -> SourceScene:
-    try:
-        rec = pycolmap.Reconstruction(str(model_dir))
-    except Exception as e:
-        raise DegradeInputError(f"cannot read the COLMAP model {model_dir}: {e}") from e
-    images = [rec.images[i] for i in sorted(rec.images) if rec.images[i].has_pose]
-    if not images:
-        raise DegradeInputError(f"the COLMAP model {model_dir} has no registered images")
-    entries = []
-    for im in images:
-        cam = rec.cameras[im.camera_id]
-        cfw = im.cam_from_world
-        w2c = np.eye(4)
-        w2c[:3, :4] = (cfw() if callable(cfw) else cfw).matrix()
-        K = _pinhole_K(cam, str(model_dir))
-        entries.append((_out_name(im.name), root / "images" / im.name, K, (cam.width, cam.height), w2c, im.image_id))
-    entries.sort(key=lambda e: e[0])
-    names = [e[0] for e in entries]
+    model = read_colmap(model_dir, tracks=True, skip_unposed=True)
+    for v, name in enumerate(model.names):
+        if np.any(model.distortion[v] != 0):
+            raise InputError(
+                f"{model_dir}: image '{name}' has a {model.camera_models[v]} camera with distortion "
+                f"{model.distortion[v].tolist()}; degrading needs undistorted pinhole images (run `colmap "
+                "image_undistorter` first)"
+            )
+    order = sorted(range(len(model.names)), key=lambda v: _out_name(model.names[v]))
+    names = [_out_name(model.names[v]) for v in order]
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
-        raise DegradeInputError(f"{model_dir}: several images map to the same output name(s) {dup}")
-    view_of_id = {e[5]: v for v, e in enumerate(entries)}
-    points = _colmap_points(rec, view_of_id)
+        raise InputError(f"{model_dir}: several images map to the same output name(s) {dup}")
     return SourceScene(
         root=root,
         kind="colmap",
         names=names,
-        image_paths=[e[1] for e in entries],
-        Ks=np.stack([e[2] for e in entries]),
-        sizes=[e[3] for e in entries],
-        w2cs=np.stack([e[4] for e in entries]),
-        points=points,
+        image_paths=[root / "images" / model.names[v] for v in order],
+        Ks=model.Ks[order],
+        sizes=[tuple(int(x) for x in model.sizes[v]) for v in order],
+        w2cs=model.w2c[order],
+        points=_sparse_points(model, order),
     )
 
 
-def _colmap_points(rec: pycolmap.Reconstruction, view_of_id: dict[int, int]) -> SparsePoints | None:
-    xyz, rgb, obs_point, obs_view, obs_uv = [], [], [], [], []
-    for pid in sorted(rec.points3D):
-        pt = rec.points3D[pid]
-        obs = [(e.image_id, e.point2D_idx) for e in pt.track.elements if e.image_id in view_of_id]
-        if len(obs) < 2:
-            continue
-        p = len(xyz)
-        xyz.append(pt.xyz)
-        rgb.append(pt.color)
-        for image_id, idx in obs:
-            obs_point.append(p)
-            obs_view.append(view_of_id[image_id])
-            obs_uv.append(rec.images[image_id].points2D[idx].xy)
-    if not xyz:
+def _sparse_points(model: ColmapModel, order: list[int]) -> SparsePoints | None:
+    """The model's points seen by at least 2 of its posed views, with view indices in output-name ``order``."""
+    pts = model.points
+    view_of_row = np.empty(len(order), dtype=np.int64)
+    view_of_row[np.asarray(order, dtype=np.int64)] = np.arange(len(order))
+    seen = np.bincount(pts.obs_point, minlength=len(pts.xyz))
+    keep = seen >= 2
+    if not keep.any():
         return None
+    new_index = np.cumsum(keep) - 1
+    obs = keep[pts.obs_point]
     return SparsePoints(
-        xyz=np.asarray(xyz, dtype=np.float64),
-        rgb=np.asarray(rgb, dtype=np.uint8),
-        obs_point=np.asarray(obs_point, dtype=np.int64),
-        obs_view=np.asarray(obs_view, dtype=np.int64),
-        obs_uv=np.asarray(obs_uv, dtype=np.float64),
+        xyz=pts.xyz[keep],
+        rgb=pts.rgb[keep],
+        obs_point=new_index[pts.obs_point[obs]],
+        obs_view=view_of_row[pts.obs_view[obs]],
+        obs_uv=pts.obs_uv[obs],
     )
 
 
@@ -176,34 +112,34 @@ def _load_transforms(root: Path, path: Path) -> SourceScene:
     try:
         meta = json.loads(path.read_text(encoding="utf8"))
     except (OSError, ValueError) as e:
-        raise DegradeInputError(f"cannot parse {path}: {e}") from e
+        raise InputError(f"cannot parse {path}: {e}") from e
     frames = meta.get("frames") if isinstance(meta, dict) else None
     if not frames:
-        raise DegradeInputError(f"{path} has no 'frames'")
+        raise InputError(f"{path} has no 'frames'")
     model = str(meta.get("camera_model", "OPENCV")).upper()
     if model not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE"):
-        raise DegradeInputError(f"{path}: camera_model {model} is not supported (need a pinhole camera)")
+        raise InputError(f"{path}: camera_model {model} is not supported (need a pinhole camera)")
     entries = []
     for i, fr in enumerate(frames):
         where = f"{path} frames[{i}]"
         get = lambda k: fr.get(k, meta.get(k))  # noqa: E731  (per-frame values override the shared ones)
         if "file_path" not in fr or "transform_matrix" not in fr:
-            raise DegradeInputError(f"{where}: needs 'file_path' and 'transform_matrix'")
+            raise InputError(f"{where}: needs 'file_path' and 'transform_matrix'")
         img_path = root / fr["file_path"]
         if not img_path.suffix and not img_path.exists() and img_path.with_suffix(".png").exists():
             img_path = img_path.with_suffix(".png")  # Blender-style paths without extension
         dist = [float(get(k) or 0.0) for k in ("k1", "k2", "k3", "k4", "p1", "p2")]
         if any(abs(d) > 0 for d in dist):
-            raise DegradeInputError(f"{where}: non-zero distortion {dist}; degrading needs undistorted images")
+            raise InputError(f"{where}: non-zero distortion {dist}; degrading needs undistorted images")
         w, h = get("w"), get("h")
         if w is None or h is None:
-            w, h = read_image(img_path).shape[1::-1]
+            w, h = read_image_float(img_path).shape[1::-1]
         w, h = int(w), int(h)
         fx, fy = get("fl_x"), get("fl_y")
         if fx is None and get("camera_angle_x") is not None:
             fx = 0.5 * w / math.tan(0.5 * float(get("camera_angle_x")))
         if fx is None:
-            raise DegradeInputError(f"{where}: no focal length (fl_x or camera_angle_x)")
+            raise InputError(f"{where}: no focal length (fl_x or camera_angle_x)")
         fy = fx if fy is None else fy
         cx = get("cx") if get("cx") is not None else 0.5 * w
         cy = get("cy") if get("cy") is not None else 0.5 * h
@@ -212,14 +148,14 @@ def _load_transforms(root: Path, path: Path) -> SourceScene:
         if c2w_gl.shape == (3, 4):
             c2w_gl = np.vstack([c2w_gl, [0.0, 0.0, 0.0, 1.0]])
         if c2w_gl.shape != (4, 4) or not np.isfinite(c2w_gl).all():
-            raise DegradeInputError(f"{where}: transform_matrix must be a finite 4x4 matrix")
+            raise InputError(f"{where}: transform_matrix must be a finite 4x4 matrix")
         w2c = world_to_camera(c2w_gl @ OPENGL_TO_OPENCV)
         entries.append((_out_name(img_path.name), img_path, K, (w, h), w2c))
     entries.sort(key=lambda e: e[0])
     names = [e[0] for e in entries]
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
-        raise DegradeInputError(f"{path}: several frames map to the same output name(s) {dup}")
+        raise InputError(f"{path}: several frames map to the same output name(s) {dup}")
     return SourceScene(
         root=root,
         kind="transforms",
@@ -239,9 +175,9 @@ def load_source(root: str | Path, check_images: bool = True) -> SourceScene:
     """
     root = Path(root)
     if not root.is_dir():
-        raise DegradeInputError(f"input scene {root} does not exist or is not a directory")
+        raise InputError(f"input scene {root} does not exist or is not a directory")
     if (root / "degradation.json").exists():
-        raise DegradeInputError(
+        raise InputError(
             f"{root} is already a degraded scene (it has degradation.json); degrade its sharp source instead"
         )
     model_dir = root / "sparse" / "0"
@@ -250,18 +186,18 @@ def load_source(root: str | Path, check_images: bool = True) -> SourceScene:
     elif (root / "transforms.json").is_file():
         src = _load_transforms(root, root / "transforms.json")
     else:
-        raise DegradeInputError(
+        raise InputError(
             f"{root} has no COLMAP model (sparse/0/) and no transforms.json: nothing to read cameras from"
         )
     if len(src.names) < 2:
-        raise DegradeInputError(f"{root}: need at least 2 views, found {len(src.names)}")
+        raise InputError(f"{root}: need at least 2 views, found {len(src.names)}")
     for name, path in zip(src.names, src.image_paths):
         if not path.is_file():
             listed = "sparse/0" if src.kind == "colmap" else "transforms.json"
-            raise DegradeInputError(f"image {path.name} is listed in {listed} but missing: {path}")
+            raise InputError(f"image {path.name} is listed in {listed} but missing: {path}")
     if check_images:
         for path, size in zip(src.image_paths, src.sizes):
-            read_image(path, size)
+            read_image_float(path, size)
     depth_dir = root / "depth"
     src.depth_paths = [
         (depth_dir / (Path(n).stem + ".npy")) if (depth_dir / (Path(n).stem + ".npy")).is_file() else None
@@ -280,10 +216,10 @@ def load_depth(path: Path, size: tuple[int, int]) -> np.ndarray:
     try:
         d = np.load(path)
     except Exception as e:
-        raise DegradeInputError(f"cannot read depth map {path}: {e}") from e
+        raise InputError(f"cannot read depth map {path}: {e}") from e
     if d.shape != (size[1], size[0]):
-        raise DegradeInputError(f"depth map {path} is {d.shape} but the image is {size[1]}x{size[0]} (H x W)")
+        raise InputError(f"depth map {path} is {d.shape} but the image is {size[1]}x{size[0]} (H x W)")
     d = d.astype(np.float64)
     if np.any(~(d > 0)):
-        raise DegradeInputError(f"depth map {path} has zero, negative or NaN depths")
+        raise InputError(f"depth map {path} has zero, negative or NaN depths")
     return d

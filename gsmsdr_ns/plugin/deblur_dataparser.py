@@ -1,6 +1,6 @@
 """``deblur-nerf-data``: scenes in the Deblur-NeRF layout (also what ``gsmsdr-degrade`` writes).
 
-Layout (``notes_tmp/degrade_spec.md``)::
+Layout::
 
     <scene>/images/ or images_N/   every view; sorted by file name, the views whose index % N == 0 are test views
     <scene>/images_test/           optional sharp twin of every view (same names), the evaluation ground truth
@@ -24,9 +24,9 @@ from typing import Any, Dict, List, Literal, Optional, Tuple, Type
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 
 from gsmsdr_ns.data.degradation import load_degradation_json, match_entries, record_from_entry, sharp_record
-from gsmsdr_ns.data.errors import GSMSDRDataError, GSMSDRDataWarning
-from gsmsdr_ns.data.images import read_image_size, resolve_image
 from gsmsdr_ns.data.layout import DEFAULT_HOLD, hold_files, holdout_split, read_hold
+from gsmsdr_ns.io.errors import InputError, InputWarning
+from gsmsdr_ns.io.images import read_image_size, resolve_image
 from gsmsdr_ns.plugin.scene_parser import POSES_BOUNDS, SceneSource, SortedSceneParser, SortedSceneParserConfig
 from gsmsdr_ns.plugin.scene_parser import find_colmap_model, split_indices
 
@@ -71,15 +71,15 @@ class DeblurNerfDataParser(SortedSceneParser):
             elif poses_bounds.is_file():
                 source = "poses_bounds"
             else:
-                raise GSMSDRDataError(
+                raise InputError(
                     f"gsmsdr: '{data}' has no camera poses: no COLMAP model in '{recon}' (cameras + images .bin/.txt) "
                     f"and no '{poses_bounds}'. A Deblur-NeRF scene needs one of them; run COLMAP on the images, or "
                     "set --pipeline.datamanager.dataparser.colmap-path if the model lives elsewhere."
                 )
         if source == "colmap":
-            return self.read_colmap(recon)
+            return self.colmap_source(recon)
         if not poses_bounds.is_file():
-            raise GSMSDRDataError(f"gsmsdr: pose_source is poses_bounds but '{poses_bounds}' does not exist.")
+            raise InputError(f"gsmsdr: pose_source is poses_bounds but '{poses_bounds}' does not exist.")
         return self.read_llff(poses_bounds)
 
     # --- hold and degradation.json -----------------------------------------------------------------------------
@@ -104,12 +104,12 @@ class DeblurNerfDataParser(SortedSceneParser):
             json_path = data / self.config.degradation_file
             if doc_hold is not None and not hold_files(data):
                 if not isinstance(doc_hold, int) or isinstance(doc_hold, bool) or doc_hold < 1:
-                    raise GSMSDRDataError(f"gsmsdr: '{json_path}' has hold {doc_hold!r}; it must be an integer >= 1.")
+                    raise InputError(f"gsmsdr: '{json_path}' has hold {doc_hold!r}; it must be an integer >= 1.")
                 hold, origin = doc_hold, str(json_path)
             else:
                 hold, origin = read_hold(data, self.config.default_hold)
                 if doc_hold is not None and doc_hold != hold:
-                    raise GSMSDRDataError(
+                    raise InputError(
                         f"gsmsdr: the holdout interval of '{data}' is {hold} ({origin}) but '{json_path}' says hold "
                         f"{doc_hold}. Make them agree (re-create the scene with gsmsdr-degrade)."
                     )
@@ -117,7 +117,7 @@ class DeblurNerfDataParser(SortedSceneParser):
                 entry = entries.get(name)
                 expected = "test" if index % hold == 0 else "train"
                 if entry is not None and entry.get("split") not in (None, expected):
-                    raise GSMSDRDataError(
+                    raise InputError(
                         f"gsmsdr: '{json_path}' puts image '{name}' (index {index} in file-name order) in the "
                         f"{entry['split']} split, but hold={hold} makes it a {expected} view. The file does not belong "
                         "to this image set (added or removed images shift the held-out views)."
@@ -142,7 +142,7 @@ class DeblurNerfDataParser(SortedSceneParser):
         train, test = holdout_split(len(names), hold)
         indices = split_indices(split, train, test)
         if len(indices) == 0:
-            raise GSMSDRDataError(
+            raise InputError(
                 f"gsmsdr: the {split} split of '{self.config.data}' is empty: {len(names)} views with hold={hold} "
                 f"({hold_origin}). Use a hold interval between 2 and the number of views."
             )
@@ -177,6 +177,6 @@ class DeblurNerfDataParser(SortedSceneParser):
                 f"gsmsdr: the sharp twins in '{twins[0].parent}' are {twin_size[0]}x{twin_size[1]} px but the "
                 f"training images in '{originals[0].parent}' are {own_size[0]}x{own_size[1]} px; evaluating at the "
                 "twins' size.",
-                GSMSDRDataWarning,
+                InputWarning,
                 stacklevel=3,
             )

@@ -21,9 +21,9 @@ from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gsmsdr_ns.data.degradation import sharp_record
-from gsmsdr_ns.data.errors import GSMSDRDataError
 from gsmsdr_ns.data.layout import holdout_split
 from gsmsdr_ns.data.mixres import MIXRES_FACTORS, MixresImages, cache_dir_for, group_sizes, mixres_cache
+from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.plugin.scene_parser import SceneSource, SortedSceneParser, SortedSceneParserConfig, find_colmap_model
 from gsmsdr_ns.plugin.scene_parser import split_indices
 
@@ -63,17 +63,17 @@ class MixresDataParser(SortedSceneParser):
         recon = find_colmap_model(data, candidates)
         if recon is None:
             looked = " or ".join(f"'{data / c}'" for c in candidates)
-            raise GSMSDRDataError(
+            raise InputError(
                 f"gsmsdr: mixres-data needs a COLMAP model: none in {looked} (cameras + images .bin/.txt). Run "
                 "COLMAP on the images (Mip-NeRF 360 scenes ship sparse/0)."
             )
-        return self.read_colmap(recon)
+        return self.colmap_source(recon)
 
     def train_images(self, names: List[str], files: List[Path]) -> MixresImages:
         if self._train_images is None:
             factors = tuple(int(f) for f in self.config.factors)
             if not factors or min(factors) < 1:
-                raise GSMSDRDataError(f"gsmsdr: mixres factors must be integers >= 1, got {list(self.config.factors)}.")
+                raise InputError(f"gsmsdr: mixres factors must be integers >= 1, got {list(self.config.factors)}.")
             images_dir = self.images_dir().name
             data = Path(self.config.data)
             cache = cache_dir_for(data, self.config.seed, images_dir)
@@ -91,7 +91,7 @@ class MixresDataParser(SortedSceneParser):
                     log=lambda msg: CONSOLE.log(f"gsmsdr: {msg}"),
                 )
             except PermissionError as err:
-                raise GSMSDRDataError(
+                raise InputError(
                     f"gsmsdr: cannot write the mixed-resolution cache '{cache}': {err}. Point "
                     "--pipeline.datamanager.dataparser.cache-path at a writable folder."
                 ) from err
@@ -102,7 +102,7 @@ class MixresDataParser(SortedSceneParser):
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         if self.config.eval_interval < 2:
-            raise GSMSDRDataError(
+            raise InputError(
                 f"gsmsdr: eval_interval must be >= 2 (every N-th view is a test view), got {self.config.eval_interval}."
             )
         scene = self.load_scene()
@@ -110,7 +110,7 @@ class MixresDataParser(SortedSceneParser):
         train, test = holdout_split(len(names), self.config.eval_interval)
         indices = split_indices(split, train, test)
         if len(indices) == 0:
-            raise GSMSDRDataError(
+            raise InputError(
                 f"gsmsdr: the {split} split of '{self.config.data}' is empty ({len(names)} views, every "
                 f"{self.config.eval_interval}th held out)."
             )

@@ -25,10 +25,11 @@ from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserCo
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from gsmsdr_ns.data.cameras import SceneCameras, has_colmap_model, read_colmap_model, read_poses_bounds
-from gsmsdr_ns.data.errors import GSMSDRDataError
-from gsmsdr_ns.data.images import fit_intrinsics, list_images, read_image_size, resolve_image
-from gsmsdr_ns.plugin.dataparser import check_colmap_model, check_images_match_cameras
+from gsmsdr_ns.data.cameras import SceneCameras, cameras_from_colmap, fit_intrinsics, read_poses_bounds
+from gsmsdr_ns.io.colmap import has_colmap_model, read_colmap
+from gsmsdr_ns.io.errors import InputError
+from gsmsdr_ns.io.images import list_images, read_image_size, resolve_image
+from gsmsdr_ns.plugin.dataparser import check_images_match_cameras
 
 POSES_BOUNDS = "poses_bounds.npy"
 
@@ -142,14 +143,14 @@ class SortedSceneParser(DataParser):
     def images_dir(self) -> Path:
         factor = int(self.config.downscale_factor)
         if factor < 1:
-            raise GSMSDRDataError(f"gsmsdr: downscale_factor must be >= 1, got {factor}.")
+            raise InputError(f"gsmsdr: downscale_factor must be >= 1, got {factor}.")
         name = str(self.config.images_path) if factor == 1 else f"{self.config.images_path}_{factor}"
         return Path(self.config.data) / name
 
     def check_data_dir(self) -> Path:
         data = Path(self.config.data)
         if not data.is_dir():
-            raise GSMSDRDataError(
+            raise InputError(
                 f"gsmsdr: data directory '{data}' does not exist or is not a directory. Pass the scene directory "
                 "with --data <dir>."
             )
@@ -160,26 +161,16 @@ class SortedSceneParser(DataParser):
                 if self.config.downscale_factor > 1
                 else "The scene needs its images in that folder."
             )
-            raise GSMSDRDataError(f"gsmsdr: image folder '{images}' does not exist. {hint}")
+            raise InputError(f"gsmsdr: image folder '{images}' does not exist. {hint}")
         return data
 
     # --- cameras -----------------------------------------------------------------------------------------------
 
-    def read_colmap(self, recon_dir: Path) -> SceneSource:
+    def colmap_source(self, recon_dir: Path) -> SceneSource:
         """Cameras and points of a COLMAP model, paired with their files; every image on disk must have a pose."""
         images_dir = self.images_dir()
-        try:
-            cameras, xyz, rgb = read_colmap_model(recon_dir)
-        except GSMSDRDataError as err:
-            # pycolmap's messages for malformed text models are terse: let the line-by-line checker name the bad
-            # image or camera if it can, else report pycolmap's message.
-            try:
-                check_colmap_model(recon_dir)
-            except GSMSDRDataError:
-                raise
-            except Exception:  # the checker cannot parse the files either: pycolmap's message stands
-                pass
-            raise err
+        model = read_colmap(recon_dir)
+        cameras, xyz, rgb = cameras_from_colmap(model), model.points.xyz, model.points.rgb
         files = [resolve_image(images_dir, name, f"the COLMAP model '{recon_dir}'") for name in cameras.names]
         self._check_no_unposed_images(images_dir, files, f"'{recon_dir}' has poses for {len(cameras)}")
         return SceneSource(cameras, files, (xyz, rgb), str(recon_dir))
@@ -189,7 +180,7 @@ class SortedSceneParser(DataParser):
         images_dir = self.images_dir()
         names = list_images(images_dir)
         if not names:
-            raise GSMSDRDataError(f"gsmsdr: image folder '{images_dir}' contains no images.")
+            raise InputError(f"gsmsdr: image folder '{images_dir}' contains no images.")
         return SceneSource(read_poses_bounds(path, names), [images_dir / name for name in names], None, str(path))
 
     @staticmethod
@@ -197,7 +188,7 @@ class SortedSceneParser(DataParser):
         on_disk = list_images(images_dir)
         extra = sorted(set(on_disk) - {Path(f).name for f in files})
         if extra:
-            raise GSMSDRDataError(
+            raise InputError(
                 f"gsmsdr: '{images_dir}' has {len(on_disk)} images but {poses_note}; without a pose: {extra[:5]}"
                 f"{' ...' if len(extra) > 5 else ''}. The held-out views are counted over all images sorted by file "
                 "name, so every image needs a pose: remove these files or re-run COLMAP on all images."

@@ -7,11 +7,9 @@ Public API:
     orbit_cameras(config) -> [V, 4, 4]      OpenCV camera-to-world poses (capture order)
     intrinsics(width, height, fov_deg) -> [3, 3]
     render_view(scene, c2w, K, width, height, supersample) -> (rgb [H, W, 3], depth [H, W])
-    read_colmap_cameras(model_dir) -> dict  names / Ks / sizes / w2cs of a written model
 """
 
 from .cameras import intrinsics, look_at, orbit_cameras, project, world_to_camera
-from .colmap_io import read_colmap_cameras, write_colmap_model
 from .config import SynthSceneConfig, load_preset
 from .generate import generate_scene
 from .raycast import render_view
@@ -30,6 +28,4 @@ __all__ = [
     "project",
     "world_to_camera",
     "render_view",
-    "read_colmap_cameras",
-    "write_colmap_model",
 ]

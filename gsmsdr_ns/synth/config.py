@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
+from ..io.config import load_dataclass, read_yaml_mapping
 
 
 @dataclass
@@ -105,20 +104,14 @@ class SynthSceneConfig:
             )
 
 
-def config_from_dict(values: Mapping[str, Any], base: SynthSceneConfig | None = None) -> SynthSceneConfig:
-    """Overlay `values` on `base` (default config); unknown keys are an error (typos must not pass silently)."""
-    base = base if base is not None else SynthSceneConfig()
-    known = {f.name for f in dataclasses.fields(SynthSceneConfig)}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise ValueError(f"unknown SynthSceneConfig keys: {unknown}; valid keys: {sorted(known)}")
-    return dataclasses.replace(base, **dict(values))
+def config_from_dict(
+    values: Mapping[str, Any], base: SynthSceneConfig | None = None, source: str | Path | None = None
+) -> SynthSceneConfig:
+    """Overlay `values` on `base` (default config); unknown keys and wrong types are an InputError naming `source`
+    and the key (typos must not pass silently)."""
+    return load_dataclass(SynthSceneConfig, values, source, base if base is not None else SynthSceneConfig())
 
 
 def load_preset(path: str | Path) -> SynthSceneConfig:
     """Read a YAML preset (flat mapping of SynthSceneConfig fields; missing fields keep their defaults)."""
-    with open(path, encoding="utf8") as f:
-        values = yaml.safe_load(f) or {}
-    if not isinstance(values, dict):
-        raise ValueError(f"preset {path} must be a YAML mapping, got {type(values).__name__}")
-    return config_from_dict(values)
+    return config_from_dict(read_yaml_mapping(Path(path)), source=path)

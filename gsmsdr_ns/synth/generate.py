@@ -11,29 +11,22 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import secrets
-import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 from .cameras import intrinsics, orbit_cameras, world_to_camera
-from .colmap_io import write_colmap_model
+from ..io.atomic import atomic_dir
+from ..io.colmap import write_colmap_model
+from ..io.images import write_image
 from .config import SynthSceneConfig
 from .points import sample_sparse_points
 from .raycast import render_view
 from .scene import WORLD_UP, build_scene, seed_streams
 
 FORMAT_VERSION = 1
-
-
-def write_png(path: Path, rgb: np.ndarray) -> None:
-    """rgb: [H, W, 3] uint8. PIL writes no timestamps, so equal arrays give equal files."""
-    Image.fromarray(rgb, mode="RGB").save(path, format="PNG")
 
 
 def to_uint8(rgb: np.ndarray) -> np.ndarray:
@@ -56,25 +49,8 @@ def _check_target(out: Path, overwrite: bool) -> None:
             )
 
 
-def _commit(tmp: Path, out: Path) -> None:
-    """Swap the finished temp dir into place; the old target (if any) is only deleted after the swap."""
-    old = None
-    if out.exists():
-        old = out.parent / f".{out.name}.old-{os.getpid()}-{secrets.token_hex(4)}"
-        os.rename(out, old)
-    try:
-        os.rename(tmp, out)
-    except BaseException:
-        if old is not None:
-            os.rename(old, out)
-        raise
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
-
-
-# Public names for other writers of scene directories (gsmsdr_ns.degrade) that follow the same atomic protocol.
+# Public name for other writers of scene directories (gsmsdr_ns.degrade) that refuse the same targets.
 check_target = _check_target
-commit_dir = _commit
 
 
 def _write_all(root: Path, cfg: SynthSceneConfig, log: Callable[[str], None]) -> dict:
@@ -88,7 +64,7 @@ def _write_all(root: Path, cfg: SynthSceneConfig, log: Callable[[str], None]) ->
     (root / "depth").mkdir()
     for i, name in enumerate(names):
         rgb, depth = render_view(scene, c2ws[i], K, cfg.width, cfg.height, cfg.supersample)
-        write_png(root / "images" / name, to_uint8(rgb))
+        write_image(root / "images" / name, to_uint8(rgb))
         np.save(root / "depth" / (Path(name).stem + ".npy"), depth)
         log(f"rendered {i + 1}/{len(names)} {name}")
     Ks = np.repeat(K[None], cfg.num_views, axis=0)
@@ -141,15 +117,7 @@ def generate_scene(
     cfg = config if config is not None else SynthSceneConfig()
     out = Path(out_dir).absolute()
     _check_target(out, overwrite)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    # Not mkdtemp: its 0700 mode would end up on the final directory; mkdir honours the umask.
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}-{secrets.token_hex(4)}"
-    tmp.mkdir()
-    try:
+    with atomic_dir(out) as tmp:
         _write_all(tmp, cfg, log or (lambda _msg: None))
         _check_target(out, overwrite)  # re-check: something may have appeared while we rendered
-        _commit(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out

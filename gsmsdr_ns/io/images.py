@@ -1,0 +1,138 @@
+"""Image files: listing a folder in file-name order, matching names across folders, sizes, reading and writing.
+
+Decoding goes through scikit-image (``skimage.io``); the size of a file is read from its header only (PIL), so
+checking a whole scene costs no decoding. Writing goes through PIL, which stores no timestamps: equal arrays give
+byte-identical files. Every failure is an :class:`~gsmsdr_ns.io.errors.InputError` naming the file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional, Tuple
+
+import numpy as np
+
+from gsmsdr_ns.io.errors import InputError
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+"""File name endings (any case) that count as images when a folder is listed."""
+
+
+def is_image_name(name: str) -> bool:
+    """Whether a file name counts as an image (see :data:`IMAGE_EXTENSIONS`; hidden files never do)."""
+    return not name.startswith(".") and name.lower().endswith(IMAGE_EXTENSIONS)
+
+
+def list_images(folder: Path) -> List[str]:
+    """Names of the image files directly inside ``folder``, sorted by file name (hidden files are skipped)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"gsmsdr: image folder '{folder}' does not exist or is not a directory.")
+    return sorted(p.name for p in folder.iterdir() if p.is_file() and is_image_name(p.name))
+
+
+def resolve_image(folder: Path, name: str, listed_in: str) -> Path:
+    """The file for image ``name`` inside ``folder``.
+
+    The exact name wins; otherwise a unique file with the same stem is accepted, because downscaled copies
+    (``images_4/``, LLFF's minify) are often re-encoded as PNG. ``listed_in`` says where the name came from, for
+    the error message.
+    """
+    folder = Path(folder)
+    exact = folder / name
+    if exact.is_file():
+        return exact
+    stem = Path(name).stem
+    if folder.is_dir():
+        candidates = sorted(p for p in folder.glob(f"{stem}.*") if p.is_file() and is_image_name(p.name))
+        if len(candidates) == 1:
+            return candidates[0]
+    raise InputError(
+        f"gsmsdr: image '{name}' is listed in {listed_in} but '{exact}' does not exist (nor a file with the same "
+        "name and another extension). Restore the file, or remove the image from the camera file."
+    )
+
+
+def read_image_size(path: Path) -> Tuple[int, int]:
+    """(width, height) of an image file from its header; :class:`InputError` naming the file if unusable."""
+    from PIL import Image  # header-only size read; scikit-image has none
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"gsmsdr: image file '{path}' does not exist. Restore it, or remove it from the camera file.")
+    if path.stat().st_size == 0:
+        raise InputError(
+            f"gsmsdr: image file '{path}' is empty (0 bytes): an interrupted copy or download? Re-copy it."
+        )
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+    except Exception as err:  # UnidentifiedImageError, OSError, SyntaxError, DecompressionBombError, ...
+        raise InputError(
+            f"gsmsdr: cannot read image file '{path}': {err}. The file is not a readable image; re-copy or "
+            "re-export it."
+        ) from err
+    if width <= 0 or height <= 0:
+        raise InputError(f"gsmsdr: image file '{path}' has zero size ({width}x{height} px).")
+    return int(width), int(height)
+
+
+def decode_image(path: Path, expected_size: Optional[Tuple[int, int]] = None) -> np.ndarray:
+    """Decode an image file into ``[H, W, C]`` in the file's own dtype (C = 3 or 4; grey becomes 3 equal channels).
+
+    Missing, empty, unidentifiable, truncated or corrupt files, unsupported channel counts and (when
+    ``expected_size`` = (width, height) is given) a size other than the camera's are :class:`InputError`.
+    """
+    import skimage.io
+
+    path = Path(path)
+    read_image_size(path)  # clear messages for missing / empty / unidentifiable files
+    try:
+        image = np.asarray(skimage.io.imread(path))
+    except Exception as err:  # the decoders raise many types (OSError, ValueError, SyntaxError, ...)
+        raise InputError(
+            f"gsmsdr: cannot read image file '{path}': {err}. The file is unreadable or truncated; re-copy or "
+            "re-export it."
+        ) from err
+    if image.ndim == 2:
+        image = image[:, :, None]
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = np.repeat(image, 3, axis=2)
+    if image.ndim != 3 or image.shape[2] not in (3, 4):
+        raise InputError(f"gsmsdr: image file '{path}' has unsupported shape {image.shape} (need grey, RGB or RGBA).")
+    if image.shape[0] == 0 or image.shape[1] == 0:
+        raise InputError(f"gsmsdr: image file '{path}' has zero size ({image.shape[1]}x{image.shape[0]} px).")
+    if expected_size is not None and (image.shape[1], image.shape[0]) != tuple(int(v) for v in expected_size):
+        raise InputError(
+            f"gsmsdr: image file '{path}' is {image.shape[1]}x{image.shape[0]} px but its camera says "
+            f"{int(expected_size[0])}x{int(expected_size[1])} px. Use the images the cameras were computed on (or "
+            "resize them back), or recompute the cameras on these images."
+        )
+    return image
+
+
+def read_image(path: Path, expected_size: Optional[Tuple[int, int]] = None) -> np.ndarray:
+    """Decode an image file into a ``[H, W, C]`` uint8 array (C = 3 or 4); checks as :func:`decode_image`."""
+    import skimage.util
+
+    image = decode_image(path, expected_size)
+    if image.dtype != np.uint8:
+        image = skimage.util.img_as_ubyte(image)
+    return np.ascontiguousarray(image)
+
+
+def read_image_float(path: Path, expected_size: Optional[Tuple[int, int]] = None) -> np.ndarray:
+    """Decode an image file into float32 RGB ``[H, W, 3]`` in [0, 1] (alpha dropped, 16 bit scaled exactly)."""
+    from skimage.util import img_as_float32
+
+    return img_as_float32(decode_image(path, expected_size)[..., :3])
+
+
+def write_image(path: Path, image: np.ndarray) -> None:
+    """Write a ``[H, W, 3 or 4]`` uint8 array; the format follows the file name (PNG for .png)."""
+    from PIL import Image
+
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] not in (3, 4):
+        raise ValueError(f"write_image expects [H, W, 3 or 4] uint8, got {image.dtype} {image.shape}")
+    mode = "RGB" if image.shape[2] == 3 else "RGBA"
+    Image.fromarray(np.ascontiguousarray(image), mode=mode).save(Path(path))
