@@ -123,5 +123,5 @@ def test_gsmsdr_eval_writes_given_and_aligned_metrics(trained_run, tmp_path):
     assert {"psnr", "ssim"} <= set(payload["results"]) and {"psnr", "ssim"} <= set(payload["results_aligned"])
     assert len(payload["views"]) == 2  # the tiny scene's two test views
     assert payload["results_aligned"]["psnr"] >= payload["results"]["psnr"] - 1e-6
-    assert not list(tmp_path.glob("*.partial"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["eval.json"]  # no temporary file left
     assert "aligned poses" in proc.stdout

@@ -7,13 +7,13 @@ optimised on the frozen scene) and ``views`` (per test view: both metrics and th
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import tyro
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from gsmsdr_ns.io.atomic import write_json_atomic
 from gsmsdr_ns.plugin.pose_alignment import PoseAlignmentConfig, evaluate_with_alignment
 
 
@@ -49,10 +49,7 @@ class EvalWithAlignment:
         if self.align_poses:
             payload["results_aligned"] = mean_aligned
         payload["views"] = views
-        self.output_path.parent.mkdir(parents=True, exist_ok=True)
-        partial = self.output_path.with_name(self.output_path.name + ".partial")
-        partial.write_text(json.dumps(payload, indent=2), encoding="utf8")
-        partial.replace(self.output_path)
+        write_json_atomic(self.output_path, payload, indent=2)
         summary = ", ".join(f"{k}={v:.4f}" for k, v in mean.items())
         print(f"gsmsdr-eval: given poses: {summary}")
         if self.align_poses:
