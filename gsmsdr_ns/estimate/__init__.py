@@ -7,8 +7,10 @@
 
 from .classify import LABELS, DegradationEstimate, EstimateConfig, estimate_degradations, estimate_from_features
 from .features import MIXRES_GROUPS, ImageFeatures, image_features
+from .records import ESTIMATED, estimate_scene_records, write_scene_estimate
 
 __all__ = [
+    "ESTIMATED",
     "LABELS",
     "MIXRES_GROUPS",
     "DegradationEstimate",
@@ -17,4 +19,6 @@ __all__ = [
     "estimate_degradations",
     "estimate_from_features",
     "image_features",
+    "estimate_scene_records",
+    "write_scene_estimate",
 ]

@@ -44,7 +44,7 @@ class EstimateConfig:
     """An image whose combined sharpness is at least this fraction of the reference's is sharp."""
     blurred_threshold: float = 0.45
     """Below this fraction it is blurred; in between the estimate is unknown."""
-    min_reference_edge_ratio: float = 1.6
+    min_reference_edge_ratio: float = 1.25
     """Edge steepness (full-resolution over blurred gradient, ~2.5 for a step edge, 1 for a flat ramp) the
     reference images must reach to be trusted as sharp; below it the whole set may be blurred and no image is
     called sharp."""
@@ -144,7 +144,8 @@ def _grid_factor(feats: Sequence[ImageFeatures], ref: np.ndarray, cfg: EstimateC
             and (i in ref or ft.grid_scores[f] >= cfg.grid_reference_ratio * max(base[f], 1.0))
         ]
         if passing:
-            score, f = max(passing)
+            # the largest: a grid every 4 px also repeats every 2 px (its harmonic), never the other way round
+            f, score = max((f, score) for score, f in passing)
             out.append((f, score))
         else:
             out.append((1, max(ft.grid_scores[f] for f in factors)))
