@@ -135,13 +135,14 @@ def _grid_factor(feats: Sequence[ImageFeatures], ref: np.ndarray, cfg: EstimateC
     """(factor snapped to MIXRES_GROUPS, score) per image; factor 1 without a grid."""
     factors = [f for f in MIXRES_GROUPS if f > 1]
     base = {f: float(np.median([feats[i].grid_scores[f] for i in ref])) if len(ref) else 1.0 for f in factors}
+    ref_set = set(ref.tolist())
     out = []
     for i, ft in enumerate(feats):
         passing = [
             (ft.grid_scores[f], f)
             for f in factors
             if ft.grid_scores[f] >= cfg.grid_threshold
-            and (i in ref or ft.grid_scores[f] >= cfg.grid_reference_ratio * max(base[f], 1.0))
+            and (i in ref_set or ft.grid_scores[f] >= cfg.grid_reference_ratio * max(base[f], 1.0))
         ]
         if passing:
             # the largest: a grid every 4 px also repeats every 2 px (its harmonic), never the other way round
@@ -174,6 +175,7 @@ def estimate_from_features(
     ref_angle = np.nanmedian(by_angle[ref], axis=0)
     aniso = np.array([_orientation_spread(b, ref_angle) for b in by_angle])
     grid = _grid_factor(feats, ref, cfg)
+    ref_set = set(ref.tolist())
     trusted_ref = ref_edge >= cfg.min_reference_edge_ratio and n >= cfg.min_set_size
     noise = _content_anisotropy(by_angle, [i for i in range(n) if sharp[i] >= cfg.sharp_threshold])
     direction_ok = noise < cfg.max_content_anisotropy
@@ -210,7 +212,7 @@ def estimate_from_features(
                 mixres_factor=factor if (factor > 1 or blurred is not None) else (1 if label == "sharp" else None),
                 grid_score=float(gscore),
                 blurred=blurred,
-                reference=bool(i in set(ref.tolist())),
+                reference=i in ref_set,
             )
         )
     return out

@@ -1,5 +1,5 @@
-"""Per-image measurements behind the degradation estimate: sharpness, directional gradient structure and the
-grid periodicity an upsampled image carries.
+"""Per-image measurements behind the degradation estimate: sharpness (Laplacian variance, edge steepness, per
+edge orientation) and the grid periodicity an upsampled image carries.
 
 Pure functions on grey images ``gray: [H, W]`` (float, values in [0, 1]); none of them knows about the other
 images of a set (the set-relative decisions live in :mod:`gsmsdr_ns.estimate.classify`).
@@ -29,19 +29,14 @@ class ImageFeatures:
     height: int
     laplacian_variance: float
     """Variance of the 3x3 Laplacian of the grey image: large for fine detail, small after any blur."""
-    detail_ratio: float
-    """Gradient energy at full resolution over gradient energy after a Gaussian blur (sigma 2 px): how much of the
-    image's contrast lives at the finest scale, largely independent of how much texture the view shows."""
-    tile_tensors: np.ndarray
-    """[T, 2, 2] mean gradient structure tensor of each tile of a grid over the image (gx^2, gx gy; gx gy, gy^2)."""
     edge_ratio: float
     """Median steepness of the strongest edges (:func:`edge_sharpness`): about 2.5 for step edges, towards 1 when
     blurred; independent of edge contrast and of how many edges the view shows."""
     edge_ratio_by_angle: np.ndarray
     """[bins] the same per orientation of the edge normal over [0, pi) (NaN: no edges in that bin)."""
     grid_scores: dict[int, float]
-    """Per factor f in 2..4 (and 8): periodicity of the grey image's second differences at the knot spacing of an
-    upsampling from 1/f of the size; min over the x and y axes; about 1 for images that were not upsampled."""
+    """Per factor f in 2..4: periodicity of the grey image's second (third) differences at the knot spacing of an
+    upsampling from 1/f of the size (:func:`grid_scores`); about 1 for images that were not upsampled."""
 
 
 def to_gray(rgb: np.ndarray | Tensor) -> Tensor:
@@ -57,16 +52,6 @@ def to_gray(rgb: np.ndarray | Tensor) -> Tensor:
 def laplacian_variance(gray: Tensor) -> float:
     """Variance of the Laplacian (3x3, reflect border) of gray [H, W]."""
     return float(laplacian(gray[None, None], 3, normalized=False).var())
-
-
-def gradient_energy(gray: Tensor, sigma: float = 0.0) -> float:
-    """Mean squared Sobel gradient of gray [H, W], after a Gaussian blur of `sigma` px (0: none)."""
-    x = gray[None, None]
-    if sigma > 0:
-        k = 2 * int(math.ceil(3 * sigma)) + 1
-        x = gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="reflect")
-    g = spatial_gradient(x, mode="sobel", normalized=True)[0, 0]  # [2, H, W]
-    return float((g**2).sum(0).mean())
 
 
 def edge_sharpness(
@@ -101,26 +86,6 @@ def edge_sharpness(
     return float(np.median(ratio)), per_bin
 
 
-def tile_structure_tensors(gray: Tensor, tiles: int = 3) -> np.ndarray:
-    """Mean gradient structure tensor of each cell of a tiles x tiles grid over gray [H, W] -> [tiles^2, 2, 2].
-
-    Gradients are Sobel at full resolution: motion blur removes the fine detail along its direction only.
-    """
-    g = spatial_gradient(gray[None, None], mode="sobel", normalized=True)[0, 0]  # [2, H, W]
-    gx, gy = g[0], g[1]
-    H, W = gray.shape
-    ys = np.linspace(0, H, tiles + 1).round().astype(int)
-    xs = np.linspace(0, W, tiles + 1).round().astype(int)
-    out = np.zeros((tiles * tiles, 2, 2))
-    for i in range(tiles):
-        for j in range(tiles):
-            sx = gx[ys[i] : ys[i + 1], xs[j] : xs[j + 1]]
-            sy = gy[ys[i] : ys[i + 1], xs[j] : xs[j + 1]]
-            xy = float((sx * sy).mean())
-            out[i * tiles + j] = [[float((sx * sx).mean()), xy], [xy, float((sy * sy).mean())]]
-    return out
-
-
 def _line_periodicity(profile: Tensor, freq: float) -> float:
     """Power of profile [L] at `freq` cycles per sample, over its mean power per frequency (noise: about 1)."""
     p = profile - profile.mean()
@@ -133,13 +98,14 @@ def _line_periodicity(profile: Tensor, freq: float) -> float:
     return (re * re + im * im) / total
 
 
-def grid_scores(gray: Tensor, factors: tuple[int, ...] = (2, 3, 4, 8)) -> dict[int, float]:
-    """Periodicity of |second differences| at the knot spacing of an upsampling by f, for each f in `factors`.
+def grid_scores(gray: Tensor, factors: tuple[int, ...] = (2, 3, 4)) -> dict[int, float]:
+    """Periodicity of |second| and |third differences| at the knot spacing of an upsampling by f, per f in `factors`.
 
     An image interpolated from a low-resolution grid (bilinear, bicubic) bends only at (or changes its curvature
     pattern at) the low-resolution samples, so the column (row) profile of its |d2/dx2| (|d2/dy2|) repeats every
     W / w_low (H / h_low) pixels. The low size may have been rounded either way, so both roundings are tried.
-    -> {f: min over the two axes of the best score}; an image without such a grid scores about 1.
+    -> {f: min over the two axes of the best score}; an image without such a grid scores about 1. A grid every
+    4 px also repeats every 2 px (it scores at f = 2 as well); a 2 px grid does not score at f = 4.
     """
     H, W = gray.shape
     # Second differences vanish inside a bilinear segment; with f = 2 every output pixel sits at the same
@@ -172,9 +138,7 @@ def analysis_view(gray: Tensor, max_size: int) -> Tensor:
     return resize(gray[None, None], size, interpolation="area")[0, 0]
 
 
-def image_features(
-    rgb: np.ndarray | Tensor, tiles: int = 3, coarse_sigma: float = 2.0, max_size: int = 1024
-) -> ImageFeatures:
+def image_features(rgb: np.ndarray | Tensor, coarse_sigma: float = 2.0, max_size: int = 1024) -> ImageFeatures:
     """All measurements of one image. rgb: [H, W, 3] uint8 or float in [0, 1].
 
     The upsampling grid is looked for at full resolution, everything else on :func:`analysis_view`.
@@ -184,15 +148,11 @@ def image_features(
     if H < 16 or W < 16:
         raise ValueError(f"image of {W}x{H} px is too small to estimate its degradation (need >= 16x16)")
     gray = analysis_view(full, max_size)
-    fine = gradient_energy(gray)
-    coarse = gradient_energy(gray, coarse_sigma)
     edge = edge_sharpness(gray, coarse_sigma)
     return ImageFeatures(
         width=W,
         height=H,
         laplacian_variance=laplacian_variance(gray),
-        detail_ratio=fine / coarse if coarse > 0 else 0.0,
-        tile_tensors=tile_structure_tensors(gray, tiles),
         edge_ratio=edge[0],
         edge_ratio_by_angle=edge[1],
         grid_scores=grid_scores(full),
@@ -204,8 +164,6 @@ __all__ = [
     "ImageFeatures",
     "to_gray",
     "laplacian_variance",
-    "gradient_energy",
-    "tile_structure_tensors",
     "grid_scores",
     "edge_sharpness",
     "analysis_view",
