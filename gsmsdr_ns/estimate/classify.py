@@ -100,7 +100,8 @@ def _combined(edge: float, lap: float) -> float:
 
 
 def _reference(values: np.ndarray, idx: np.ndarray) -> float:
-    return float(np.mean(values[idx])) if len(idx) else float("nan")
+    # The median: one blurred image among the references (few sharp photos in a shaky capture) does not move it.
+    return float(np.median(values[idx])) if len(idx) else float("nan")
 
 
 def _confidence(value: float, threshold: float, scale: float) -> float:
