@@ -133,22 +133,25 @@ def _content_anisotropy(by_angle: np.ndarray, sharp_idx: list[int]) -> float:
 
 
 def _grid_factor(feats: Sequence[ImageFeatures], ref: np.ndarray, cfg: EstimateConfig) -> list[tuple[int, float]]:
-    """(factor snapped to MIXRES_GROUPS, score) per image; factor 1 without a grid."""
+    """(factor snapped to MIXRES_GROUPS, score) per image; factor 1 without a grid.
+
+    A grid counts when it is strong and much stronger than in the reference images (each image is compared with
+    the references other than itself): a periodic pattern every photo of the camera has is not a resolution loss.
+    """
     factors = [f for f in MIXRES_GROUPS if f > 1]
-    base = {f: float(np.median([feats[i].grid_scores[f] for i in ref])) if len(ref) else 1.0 for f in factors}
-    ref_set = set(ref.tolist())
+    ref_list = ref.tolist()
     out = []
     for i, ft in enumerate(feats):
-        passing = [
-            (ft.grid_scores[f], f)
-            for f in factors
-            if ft.grid_scores[f] >= cfg.grid_threshold
-            and (i in ref_set or ft.grid_scores[f] >= cfg.grid_reference_ratio * max(base[f], 1.0))
-        ]
+        others = [j for j in ref_list if j != i]
+        passing = []
+        for f in factors:
+            base = float(np.median([feats[j].grid_scores[f] for j in others])) if others else 1.0
+            score = ft.grid_scores[f]
+            if score >= cfg.grid_threshold and score >= cfg.grid_reference_ratio * max(base, 1.0):
+                passing.append((f, score))
         if passing:
             # the largest: a grid every 4 px also repeats every 2 px (its harmonic), never the other way round
-            f, score = max((f, score) for score, f in passing)
-            out.append((f, score))
+            out.append(max(passing))
         else:
             out.append((1, max(ft.grid_scores[f] for f in factors)))
     return out

@@ -1,7 +1,7 @@
 """Accuracy of the degradation estimate on scenes with known records (prints a table).
 
     python -m gsmsdr_ns.estimate.evaluate                      # generated scenes + the real fern photos
-    python -m gsmsdr_ns.estimate.evaluate --no-photos --size 200 150
+    python -m gsmsdr_ns.estimate.evaluate --photos --size 400 300     # generated scenes only, larger
 
 Scenes: procedural scenes written by ``gsmsdr-synth --variant <v>`` (images rendered, then degraded) and a set of
 real sharp photos (LLFF fern, ``poses_bounds.npy`` + images) degraded by ``gsmsdr-degrade``'s pipeline with the
@@ -20,7 +20,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Tuple
+from typing import Tuple
 
 import numpy as np
 import tyro
@@ -59,10 +59,10 @@ def photo_scene(work: Path, images_dir: Path, variant: str, seed: int = 0) -> Pa
     """Degrade the sharp photos of an LLFF folder with a built-in preset (written once, reused)."""
     from ..degrade.pipeline import degrade_scene
 
-    out = work / f"photos-{variant}"
+    out = work / f"photos-{images_dir.name}-{variant}"
     if (out / "degradation.json").is_file():
         return out
-    src = work / "photos-source"
+    src = work / f"photos-{images_dir.name}-source"
     if not (src / "transforms.json").is_file():
         src.mkdir(parents=True, exist_ok=True)
         doc = llff_transforms(images_dir, images_dir.parent / "poses_bounds.npy")
@@ -162,8 +162,8 @@ class EvaluateCLI:
 
     work: Path = Path("/tmp/gsmsdr-estimate-eval")
     """Where the evaluation scenes are written (once; later runs reuse them)."""
-    photos: Optional[Path] = Path("/work/shared/data/llff-fern/images_8")
-    """Folder of real sharp photos with poses_bounds.npy beside it (LLFF); None to skip."""
+    photos: Tuple[Path, ...] = (Path("/work/shared/data/llff-fern/images_8"),)
+    """Folders of real sharp photos with poses_bounds.npy beside them (LLFF); none to skip."""
     synth: bool = True
     """Evaluate the procedural scenes (gsmsdr-synth variants)."""
     size: Tuple[int, int] = (200, 150)
@@ -182,9 +182,9 @@ class EvaluateCLI:
         if self.synth:
             for v in SYNTH_VARIANTS:
                 scenes.append((f"synth {v}", synth_scene(self.work, v, self.size, self.views, self.seed)))
-        if self.photos is not None:
+        for folder in self.photos:
             for v in PHOTO_VARIANTS:
-                scenes.append((f"photos {v}", photo_scene(self.work, Path(self.photos), v, self.seed)))
+                scenes.append((f"photos {folder.name} {v}", photo_scene(self.work, Path(folder), v, self.seed)))
         scores = [score_scene(path, name, self.config) for name, path in scenes]
         print(format_table(scores))
         if self.verbose:
