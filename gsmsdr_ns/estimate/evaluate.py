@@ -9,7 +9,8 @@ same built-in presets. Every scene is written once into ``--work`` and reused. S
 
 * sharp vs degraded: share of images whose estimate (sharp, or anything else) matches the truth (``degraded``);
   an ``unknown`` estimate counts as degraded (the model then simulates every degradation);
-* motion vs defocus: among images blurred by exactly one of the two, the share labelled with that one;
+* motion vs defocus: among images blurred by exactly one of the two, the share labelled with that one (an
+  ``unknown`` kind of blur is not counted as right; "wrong blur kind" counts the images labelled with the other);
 * mixres factor: among images with a known factor > 1, the share whose estimated factor is within one group.
 """
 
@@ -103,6 +104,7 @@ class SceneScore:
     sharp_ok: int = 0
     blur_total: int = 0
     blur_ok: int = 0
+    blur_wrong: int = 0
     mixres_total: int = 0
     mixres_ok: int = 0
     unknown: int = 0
@@ -127,6 +129,7 @@ def score_scene(scene: Path, name: str, config: EstimateConfig) -> SceneScore:
         if label in ("motion", "defocus"):
             score.blur_total += 1
             score.blur_ok += est.label == label
+            score.blur_wrong += est.label in ("motion", "defocus") and est.label != label
             ok = ok and est.label == label
         if factor > 1:
             score.mixres_total += 1
@@ -143,15 +146,18 @@ def _pct(ok: int, total: int) -> str:
 
 def format_table(scores: list[SceneScore]) -> str:
     """Markdown table: one row per scene and a total row."""
-    head = "| scene | images | sharp vs degraded | motion vs defocus | mixres factor +-1 | unknown | s/image |"
-    rows = [head, "|" + "---|" * 7]
+    head = ("| scene | images | sharp vs degraded | motion vs defocus | wrong blur kind | mixres factor +-1 | "
+            "unknown | s/image |")  # fmt: skip
+    rows = [head, "|" + "---|" * 8]
     total = SceneScore("all")
     for s in scores + [total]:
         if s is not total:
-            for key in ("images", "sharp_ok", "blur_total", "blur_ok", "mixres_total", "mixres_ok", "unknown"):
+            for key in ("images", "sharp_ok", "blur_total", "blur_ok", "blur_wrong", "mixres_total", "mixres_ok",
+                        "unknown"):  # fmt: skip
                 setattr(total, key, getattr(total, key) + getattr(s, key))
             total.seconds += s.seconds
         rows.append(f"| {s.name} | {s.images} | {_pct(s.sharp_ok, s.images)} | {_pct(s.blur_ok, s.blur_total)} | "
+                    f"{s.blur_wrong if s.blur_total else '-'} | "
                     f"{_pct(s.mixres_ok, s.mixres_total)} | {s.unknown} | {s.seconds / max(s.images, 1):.3f} |")  # fmt: skip
     return "\n".join(rows)
 
