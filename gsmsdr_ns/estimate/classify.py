@@ -32,7 +32,7 @@ LABELS = ("sharp", "motion", "defocus", "mixres", "unknown")
 class EstimateConfig:
     """Knobs of the per-image degradation estimate (thresholds are relative to the set, see the module doc)."""
 
-    reference_fraction: float = 0.15
+    reference_fraction: float = 0.1
     """Share of the set (at least `min_reference` images) with the steepest edges that serves as the sharp
     reference."""
     min_reference: int = 2
