@@ -18,7 +18,13 @@ from gsmsdr_ns.data.images import write_image
 from gsmsdr_ns.degrade.kernels import apply_mixres, convolve_psf, disk_blur, motion_kernel_from_trajectory
 from gsmsdr_ns.estimate import EstimateConfig, estimate_degradations
 from gsmsdr_ns.estimate.cli import parse
-from gsmsdr_ns.estimate.records import CACHE_FILE, ESTIMATED, estimate_entries, estimate_scene_records
+from gsmsdr_ns.estimate.records import (
+    CACHE_FILE,
+    ESTIMATED,
+    entry_from_estimate,
+    estimate_entries,
+    estimate_scene_records,
+)
 
 # A hand-held capture: views of one scene from slightly shifted positions (crops of a real photo).
 OFFSETS = [(0, 0), (16, 40), (32, 80), (48, 120), (64, 20), (100, 60), (120, 100), (80, 128)]
@@ -187,3 +193,17 @@ def test_scene_records_are_cached_until_an_image_changes(capture, tmp_path):
     fresh = estimate_scene_records(scene)
     assert fresh["view_21.png"]["estimate"]["label"] == "sharp"
     assert not (scene / "degradation.json").exists()  # the cache never touches the scene's records
+
+
+def test_views_of_different_content_leave_the_kind_of_blur_unknown():
+    # Crops far apart show different things: the sharp views disagree about edge orientations as much as a blur
+    # would, so the blurred views are recorded as blurred by both kinds (the model simulates both).
+    photo = skimage.data.astronaut()
+    offsets = [(0, 0), (40, 60), (80, 120), (120, 200), (200, 40), (260, 180), (300, 256), (160, 100)]
+    views = [photo[y : y + 192, x : x + 256].copy() for y, x in offsets]
+    estimates = estimate_degradations(views + [motion_blur(views[1]), defocus(views[2])])
+    for est in estimates[-2:]:
+        assert est.label == "unknown" and est.blurred is True and est.mixres_factor == 1
+        entry = entry_from_estimate(est)
+        assert entry["degraded"] is True and set(entry["effects"]) == {"motion", "defocus"}
+    assert all(e.label in ("sharp", "unknown") and e.blurred is not True for e in estimates[:-2])
