@@ -158,7 +158,8 @@ def format_table(scores: list[SceneScore]) -> str:
             total.seconds += s.seconds
         rows.append(f"| {s.name} | {s.images} | {_pct(s.sharp_ok, s.images)} | {_pct(s.blur_ok, s.blur_total)} | "
                     f"{s.blur_wrong if s.blur_total else '-'} | "
-                    f"{_pct(s.mixres_ok, s.mixres_total)} | {s.unknown} | {s.seconds / max(s.images, 1):.3f} |")  # fmt: skip
+                    f"{_pct(s.mixres_ok, s.mixres_total)} | {s.unknown} | "
+                    f"{s.seconds / max(s.images, 1):.3f} |")  # fmt: skip
     return "\n".join(rows)
 
 

@@ -68,7 +68,8 @@ def edge_sharpness(
     x = gray[None, None]
     k = 2 * int(math.ceil(3 * sigma)) + 1
     g_fine = spatial_gradient(x, mode="sobel", normalized=True)[0, 0]  # [2, H, W]
-    g_coarse = spatial_gradient(gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="reflect"), "sobel", 1, True)[0, 0]
+    blurred = gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="reflect")
+    g_coarse = spatial_gradient(blurred, mode="sobel", normalized=True)[0, 0]
     m = k // 2  # the border rows are biased by the padding
     g_fine, g_coarse = g_fine[:, m:-m, m:-m], g_coarse[:, m:-m, m:-m]
     mag_coarse = g_coarse.norm(dim=0).flatten()
