@@ -1,0 +1,238 @@
+"""`estimate_degradations`: label each image of a set sharp / motion / defocus / mixres / unknown, with evidence.
+
+Sharpness means little on its own (a view of smooth walls is less detailed than a view of foliage, sharp or not),
+so every decision is relative to the SET: its reference images are the ones with the steepest edges, and an
+image is compared with them.
+
+* **mixres**: an image upsampled from a lower resolution keeps the grid of its low-resolution samples
+  (:func:`~gsmsdr_ns.estimate.features.grid_scores`); a grid at factor f (much stronger than in the reference
+  images, so a camera's own periodic artefacts do not count) gives mixres with f snapped to the project's groups.
+* **sharp / blurred**: edge steepness and Laplacian variance relative to the reference images, combined.
+* **motion / defocus**: motion blur is directional, so the edges lose their steepness only across the motion;
+  defocus flattens every orientation alike. The spread over orientations of the steepness (relative to the
+  reference images, orientation by orientation) separates them. When the sharp images of the set themselves
+  show a spread that large (content that differs from view to view), the kind of blur is left unknown.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+from torch import Tensor
+
+from .features import MIXRES_GROUPS, ImageFeatures, image_features
+
+LABELS = ("sharp", "motion", "defocus", "mixres", "unknown")
+
+
+@dataclass
+class EstimateConfig:
+    """Knobs of the per-image degradation estimate (thresholds are relative to the set, see the module doc)."""
+
+    reference_fraction: float = 0.1
+    """Share of the set (at least `min_reference` images) with the steepest edges that serves as the sharp
+    reference."""
+    min_reference: int = 2
+    """Fewest reference images."""
+    min_set_size: int = 3
+    """Below this many images, sharpness cannot be judged relative to the set: only an upsampling grid is
+    reported, everything else is unknown."""
+    sharp_threshold: float = 0.6
+    """An image whose combined sharpness is at least this fraction of the reference's is sharp."""
+    blurred_threshold: float = 0.45
+    """Below this fraction it is blurred; in between the estimate is unknown."""
+    min_reference_edge_ratio: float = 1.25
+    """Edge steepness (full-resolution over blurred gradient, ~2.5 for a step edge, 1 for a flat ramp) the
+    reference images must reach to be trusted as sharp; below it the whole set may be blurred and no image is
+    called sharp."""
+    anisotropy_threshold: float = 0.15
+    """Spread over edge orientations of the relative steepness above which a blurred image is motion-blurred."""
+    max_content_anisotropy: float = 0.3
+    """When the sharp images, each against the others, spread over orientations by more than this (median), view
+    content alone moves the measure too much and the kind of blur is left unknown."""
+    grid_threshold: float = 10.0
+    """Periodicity score (about 1 without a grid) from which an upsampling grid counts."""
+    grid_reference_ratio: float = 5.0
+    """... and how many times stronger than in the reference images it must be."""
+    max_size: int = 1024
+    """Blur is judged on a copy whose longer side is at most this many px (0: full resolution)."""
+    coarse_sigma: float = 2.0
+    """Gaussian blur (px at the analysis size) of the coarse scale that edge steepness is measured against."""
+
+
+@dataclass
+class DegradationEstimate:
+    """The estimate for one image and the numbers it rests on."""
+
+    label: str
+    """sharp, motion, defocus, mixres or unknown (inconclusive)."""
+    confidence: float
+    """0 (a guess at the decision boundary) to 1 (far from it)."""
+    sharpness: float
+    """Combined sharpness relative to the set's reference images (1: as sharp as they are)."""
+    edge_sharpness: float
+    """Edge steepness above a flat ramp, relative to the reference images."""
+    laplacian_variance: float
+    """Variance of the Laplacian relative to the reference images."""
+    anisotropy: float
+    """Spread over edge orientations of the relative edge steepness (motion blur: large; defocus: small)."""
+    mixres_factor: Optional[int]
+    """Resolution-loss factor snapped to the mixres groups (1: full resolution); None when unknown."""
+    grid_score: float
+    """Periodicity score of the upsampling grid at mixres_factor (at the best factor when none is found)."""
+    blurred: Optional[bool] = None
+    """Whether the image is blurred (None: undecided)."""
+    reference: bool = False
+    """The image is one of the set's sharp reference images."""
+
+    def evidence(self) -> dict:
+        """The numbers as a JSON-ready dict (rounded)."""
+        out = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
+        return out
+
+
+def _combined(edge: float, lap: float) -> float:
+    # Geometric mean: the Laplacian reacts strongly to any blur, the edge steepness hardly depends on content.
+    return math.sqrt(max(edge, 0.0) * max(lap, 0.0))
+
+
+def _reference(values: np.ndarray, idx: np.ndarray) -> float:
+    # The median: one blurred image among the references (few sharp photos in a shaky capture) does not move it.
+    return float(np.median(values[idx])) if len(idx) else float("nan")
+
+
+def _confidence(value: float, threshold: float, scale: float) -> float:
+    """0 at the threshold, towards 1 as |log(value / threshold)| reaches log(scale)."""
+    if value <= 0 or threshold <= 0:
+        return 1.0
+    return float(min(1.0, abs(math.log(value / threshold)) / math.log(scale)))
+
+
+def _orientation_spread(by_angle: np.ndarray, baseline: np.ndarray) -> float:
+    """Spread (max - min) over edge orientations of by_angle [bins] relative to baseline [bins], both edge ratios
+    (1: flat ramp): 0 when every orientation lost the same share of its steepness, as under defocus."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = (by_angle - 1.0) / np.maximum(baseline - 1.0, 1e-6)
+    rel = rel[np.isfinite(rel)]
+    return float(np.ptp(rel)) if rel.size >= 2 else 0.0
+
+
+def _content_anisotropy(by_angle: np.ndarray, sharp_idx: list[int]) -> float:
+    """Orientation spread that view-to-view content alone causes: median over the sharp images of each one's
+    spread against the others' per-orientation median (leave one out). 0 with fewer than 3 sharp images."""
+    if len(sharp_idx) < 3:
+        return 0.0
+    spreads = []
+    for i in sharp_idx:
+        others = [j for j in sharp_idx if j != i]
+        spreads.append(_orientation_spread(by_angle[i], np.nanmedian(by_angle[others], axis=0)))
+    return float(np.median(spreads))
+
+
+def _grid_factor(feats: Sequence[ImageFeatures], ref: np.ndarray, cfg: EstimateConfig) -> list[tuple[int, float]]:
+    """(factor snapped to MIXRES_GROUPS, score) per image; factor 1 without a grid.
+
+    A grid counts when it is strong and much stronger than in the reference images (each image is compared with
+    the references other than itself): a periodic pattern every photo of the camera has is not a resolution loss.
+    """
+    factors = [f for f in MIXRES_GROUPS if f > 1]
+    ref_list = ref.tolist()
+    out = []
+    for i, ft in enumerate(feats):
+        others = [j for j in ref_list if j != i]
+        passing = []
+        for f in factors:
+            base = float(np.median([feats[j].grid_scores[f] for j in others])) if others else 1.0
+            score = ft.grid_scores[f]
+            if score >= cfg.grid_threshold and score >= cfg.grid_reference_ratio * max(base, 1.0):
+                passing.append((f, score))
+        if passing:
+            # the largest: a grid every 4 px also repeats every 2 px (its harmonic), never the other way round
+            out.append(max(passing))
+        else:
+            out.append((1, max(ft.grid_scores[f] for f in factors)))
+    return out
+
+
+def estimate_from_features(
+    feats: Sequence[ImageFeatures], config: Optional[EstimateConfig] = None
+) -> list[DegradationEstimate]:
+    """Decide the labels of a set from its measurements (:func:`image_features` per image). -> one per image."""
+    cfg = config or EstimateConfig()
+    n = len(feats)
+    if n == 0:
+        raise ValueError("estimate_degradations needs at least one image")
+    edge = np.array([f.edge_ratio for f in feats])
+    lap = np.array([f.laplacian_variance for f in feats])
+    k = min(n, max(cfg.min_reference, int(math.ceil(cfg.reference_fraction * n))))
+    ref = np.argsort(-edge, kind="stable")[:k]
+    ref_edge = _reference(edge, ref)
+    edge_rel = (edge - 1.0) / max(ref_edge - 1.0, 1e-6)
+    lap_rel = lap / max(_reference(lap, ref), 1e-12)
+    sharp = np.array([_combined(e, v) for e, v in zip(edge_rel, lap_rel)])
+    ref_sharp = _reference(sharp, ref)
+    sharp = sharp / max(ref_sharp, 1e-12)
+    by_angle = np.stack([f.edge_ratio_by_angle for f in feats])  # [n, bins]
+    ref_angle = np.nanmedian(by_angle[ref], axis=0)
+    aniso = np.array([_orientation_spread(b, ref_angle) for b in by_angle])
+    grid = _grid_factor(feats, ref, cfg)
+    ref_set = set(ref.tolist())
+    trusted_ref = ref_edge >= cfg.min_reference_edge_ratio and n >= cfg.min_set_size
+    noise = _content_anisotropy(by_angle, [i for i in range(n) if sharp[i] >= cfg.sharp_threshold])
+    direction_ok = noise < cfg.max_content_anisotropy
+    out = []
+    for i in range(n):
+        factor, gscore = grid[i]
+        blurred: Optional[bool]
+        if factor > 1:
+            label, blurred = "mixres", None
+            conf = float(min(1.0, math.log(gscore / cfg.grid_threshold + 1.0) / math.log(10.0)))
+        elif n < cfg.min_set_size:
+            label, blurred, conf = "unknown", None, 0.0
+        elif sharp[i] >= cfg.sharp_threshold:
+            label, blurred = ("sharp", False) if trusted_ref else ("unknown", None)
+            conf = _confidence(sharp[i], cfg.sharp_threshold, 2.0) if trusted_ref else 0.0
+        elif sharp[i] >= cfg.blurred_threshold:
+            label, blurred, conf = "unknown", None, 0.0
+        else:
+            blurred = True
+            conf_blur = _confidence(sharp[i], cfg.blurred_threshold, 2.0)
+            if direction_ok:
+                label = "motion" if aniso[i] >= cfg.anisotropy_threshold else "defocus"
+                conf = min(conf_blur, _confidence(aniso[i] + 1e-3, cfg.anisotropy_threshold, 2.0))
+            else:
+                label, conf = "unknown", 0.0
+        out.append(
+            DegradationEstimate(
+                label=label,
+                confidence=round(float(conf), 4),
+                sharpness=float(sharp[i]),
+                edge_sharpness=float(edge_rel[i]),
+                laplacian_variance=float(lap_rel[i]),
+                anisotropy=float(aniso[i]),
+                mixres_factor=factor if (factor > 1 or blurred is not None) else (1 if label == "sharp" else None),
+                grid_score=float(gscore),
+                blurred=blurred,
+                reference=i in ref_set,
+            )
+        )
+    return out
+
+
+def estimate_degradations(
+    images: Sequence[np.ndarray | Tensor], config: Optional[EstimateConfig] = None
+) -> list[DegradationEstimate]:
+    """Estimate the degradation of every image of a set (one capture: sharpness is judged relative to it).
+
+    images: each [H, W, 3] (or [H, W, 4]) uint8, or float in [0, 1]; sizes may differ. -> one
+    :class:`DegradationEstimate` per image, in order.
+    """
+    cfg = config or EstimateConfig()
+    feats = [image_features(img, coarse_sigma=cfg.coarse_sigma, max_size=cfg.max_size) for img in images]
+    return estimate_from_features(feats, cfg)
+
+
+__all__ = ["LABELS", "EstimateConfig", "DegradationEstimate", "estimate_degradations", "estimate_from_features"]

@@ -1,0 +1,172 @@
+"""Per-image measurements behind the degradation estimate: sharpness (Laplacian variance, edge steepness, per
+edge orientation) and the grid periodicity an upsampled image carries.
+
+Pure functions on grey images ``gray: [H, W]`` (float, values in [0, 1]); none of them knows about the other
+images of a set (the set-relative decisions live in :mod:`gsmsdr_ns.estimate.classify`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from kornia.color import rgb_to_grayscale
+from kornia.filters import gaussian_blur2d, laplacian, spatial_gradient
+from kornia.geometry.transform import resize
+from torch import Tensor
+
+MIXRES_GROUPS = (1, 2, 3, 4)
+"""Resolution-loss factors of the project's mixed-resolution groups (``MixresConfig.factors``)."""
+
+
+@dataclass
+class ImageFeatures:
+    """Measurements of one image (no decision yet)."""
+
+    width: int
+    height: int
+    laplacian_variance: float
+    """Variance of the 3x3 Laplacian of the grey image: large for fine detail, small after any blur."""
+    edge_ratio: float
+    """Median steepness of the strongest edges (:func:`edge_sharpness`): about 2.5 for step edges, towards 1 when
+    blurred; independent of edge contrast and of how many edges the view shows."""
+    edge_ratio_by_angle: np.ndarray
+    """[bins] the same per orientation of the edge normal over [0, pi) (NaN: no edges in that bin)."""
+    grid_scores: dict[int, float]
+    """Per factor f in 2..4: periodicity of the grey image's second (third) differences at the knot spacing of an
+    upsampling from 1/f of the size (:func:`grid_scores`); about 1 for images that were not upsampled."""
+
+
+def to_gray(rgb: np.ndarray | Tensor) -> Tensor:
+    """rgb: [H, W, 3] uint8 or float in [0, 1] (an alpha channel is dropped) -> gray: [H, W] float64."""
+    x = torch.as_tensor(np.asarray(rgb))
+    if x.ndim != 3 or x.shape[-1] not in (3, 4):
+        raise ValueError(f"expected an [H, W, 3] RGB image, got shape {tuple(x.shape)}")
+    x = x[..., :3]
+    x = x.to(torch.float64) / 255.0 if x.dtype == torch.uint8 else x.to(torch.float64)
+    return rgb_to_grayscale(x.permute(2, 0, 1)[None])[0, 0]
+
+
+def laplacian_variance(gray: Tensor) -> float:
+    """Variance of the Laplacian (3x3, reflect border) of gray [H, W]."""
+    return float(laplacian(gray[None, None], 3, normalized=False).var())
+
+
+def edge_sharpness(
+    gray: Tensor, sigma: float = 2.0, top_fraction: float = 0.05, bins: int = 8
+) -> tuple[float, np.ndarray]:
+    """How steep the image's strongest edges are, overall and per edge orientation. gray: [H, W].
+
+    At the pixels with the strongest gradients of the image blurred by `sigma` (the top `top_fraction`: edges
+    and texture, wherever they are), the ratio of the full-resolution gradient magnitude to the blurred one does
+    not depend on the edge's contrast: about 2.5 for a step edge, falling towards 1 as the edge gets blurred.
+    -> (median ratio, [bins] median ratio of the edges whose normal lies in each orientation bin over [0, pi);
+    NaN for a bin without edges). Motion blur lowers the ratio only for edges across its direction.
+    """
+    x = gray[None, None]
+    k = 2 * int(math.ceil(3 * sigma)) + 1
+    g_fine = spatial_gradient(x, mode="sobel", normalized=True)[0, 0]  # [2, H, W]
+    blurred = gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="reflect")
+    g_coarse = spatial_gradient(blurred, mode="sobel", normalized=True)[0, 0]
+    m = k // 2  # the border rows are biased by the padding
+    g_fine, g_coarse = g_fine[:, m:-m, m:-m], g_coarse[:, m:-m, m:-m]
+    mag_coarse = g_coarse.norm(dim=0).flatten()
+    mag_fine = g_fine.norm(dim=0).flatten()
+    n = max(16, int(top_fraction * mag_coarse.numel()))
+    strong = torch.topk(mag_coarse, min(n, mag_coarse.numel())).indices
+    if float(mag_coarse[strong].min()) <= 0:
+        strong = strong[mag_coarse[strong] > 0]
+    if strong.numel() == 0:
+        return 0.0, np.full(bins, np.nan)
+    ratio = (mag_fine[strong] / mag_coarse[strong]).numpy()
+    angle = torch.atan2(g_coarse[1].flatten()[strong], g_coarse[0].flatten()[strong]).numpy() % math.pi
+    which = np.minimum((angle / math.pi * bins).astype(int), bins - 1)
+    per_bin = np.array([np.median(ratio[which == b]) if (which == b).sum() >= 8 else np.nan for b in range(bins)])
+    return float(np.median(ratio)), per_bin
+
+
+def _line_periodicity(profile: Tensor, freq: float) -> float:
+    """Power of profile [L] at `freq` cycles per sample, over its mean power per frequency (noise: about 1)."""
+    p = profile - profile.mean()
+    total = float((p**2).sum())
+    if total <= 0:
+        return 0.0
+    x = torch.arange(len(p), dtype=p.dtype)
+    phase = 2 * math.pi * freq * x
+    re, im = float((p * torch.cos(phase)).sum()), float((p * torch.sin(phase)).sum())
+    return (re * re + im * im) / total
+
+
+def grid_scores(gray: Tensor, factors: tuple[int, ...] = (2, 3, 4)) -> dict[int, float]:
+    """Periodicity of |second| and |third differences| at the knot spacing of an upsampling by f, per f in `factors`.
+
+    An image interpolated from a low-resolution grid (bilinear, bicubic) bends only at (or changes its curvature
+    pattern at) the low-resolution samples, so the column (row) profile of its |d2/dx2| (|d2/dy2|) repeats every
+    W / w_low (H / h_low) pixels. The low size may have been rounded either way, so both roundings are tried.
+    -> {f: min over the two axes of the best score}; an image without such a grid scores about 1. A grid every
+    4 px also repeats every 2 px (it scores at f = 2 as well); a 2 px grid does not score at f = 4.
+    """
+    H, W = gray.shape
+    # Second differences vanish inside a bilinear segment; with f = 2 every output pixel sits at the same
+    # distance from a knot, and only the third differences (zero between the two pixels of a segment) show it.
+    profiles = {
+        "x": [torch.diff(gray, n, dim=1).abs().mean(0) for n in (2, 3)],  # [W - n]
+        "y": [torch.diff(gray, n, dim=0).abs().mean(1) for n in (2, 3)],  # [H - n]
+    }
+    scores = {}
+    for f in factors:
+        axis_scores = []
+        for axis, size in (("x", W), ("y", H)):
+            lows = {max(1, math.floor(size / f)), max(1, math.ceil(size / f))}
+            axis_scores.append(max(_line_periodicity(p, low / size) for low in lows for p in profiles[axis]))
+        scores[f] = min(axis_scores)
+    return scores
+
+
+def analysis_view(gray: Tensor, max_size: int) -> Tensor:
+    """gray [H, W] shrunk (antialiased) so its longer side is at most `max_size` px (0: unchanged) -> [h, w].
+
+    Blur is judged at this size: large photos are often soft at the pixel level (demosaicing, optics) while
+    sharp at any size a reconstruction is trained at, and the measurements get cheaper.
+    """
+    H, W = gray.shape
+    scale = max_size / max(H, W) if max_size > 0 else 1.0
+    if scale >= 1.0:
+        return gray
+    size = (max(16, round(H * scale)), max(16, round(W * scale)))
+    return resize(gray[None, None], size, interpolation="area")[0, 0]
+
+
+def image_features(rgb: np.ndarray | Tensor, coarse_sigma: float = 2.0, max_size: int = 1024) -> ImageFeatures:
+    """All measurements of one image. rgb: [H, W, 3] uint8 or float in [0, 1].
+
+    The upsampling grid is looked for at full resolution, everything else on :func:`analysis_view`.
+    """
+    full = to_gray(rgb)
+    H, W = full.shape
+    if H < 16 or W < 16:
+        raise ValueError(f"image of {W}x{H} px is too small to estimate its degradation (need >= 16x16)")
+    gray = analysis_view(full, max_size)
+    edge = edge_sharpness(gray, coarse_sigma)
+    return ImageFeatures(
+        width=W,
+        height=H,
+        laplacian_variance=laplacian_variance(gray),
+        edge_ratio=edge[0],
+        edge_ratio_by_angle=edge[1],
+        grid_scores=grid_scores(full),
+    )
+
+
+__all__ = [
+    "MIXRES_GROUPS",
+    "ImageFeatures",
+    "to_gray",
+    "laplacian_variance",
+    "grid_scores",
+    "edge_sharpness",
+    "analysis_view",
+    "image_features",
+]

@@ -1,0 +1,209 @@
+"""Per-image degradation estimate: labels on real images written to disk, the upsampling factor, the
+gsmsdr-estimate CLI's records (valid for the data reader, true records kept, atomic) and bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import skimage.data
+import torch
+
+from gsmsdr_ns.data.degradation import load_degradation_json, match_entries, record_from_entry
+from gsmsdr_ns.data.errors import GSMSDRDataError
+from gsmsdr_ns.data.images import write_image
+from gsmsdr_ns.degrade.kernels import apply_mixres, convolve_psf, disk_blur, motion_kernel_from_trajectory
+from gsmsdr_ns.estimate import EstimateConfig, estimate_degradations
+from gsmsdr_ns.estimate.cli import parse
+from gsmsdr_ns.estimate.records import (
+    CACHE_FILE,
+    ESTIMATED,
+    entry_from_estimate,
+    estimate_entries,
+    estimate_scene_records,
+)
+
+# A hand-held capture: views of one scene from slightly shifted positions (crops of a real photo).
+OFFSETS = [(0, 0), (16, 40), (32, 80), (48, 120), (64, 20), (100, 60), (120, 100), (80, 128)]
+CROP = (288, 384)
+
+
+def _tensor(rgb: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(rgb, dtype=np.float32) / 255.0).permute(2, 0, 1)[None]
+
+
+def _uint8(x: torch.Tensor) -> np.ndarray:
+    return (x[0].permute(1, 2, 0).clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+
+
+def sharp_views() -> list[np.ndarray]:
+    photo = skimage.data.astronaut()
+    return [photo[y : y + CROP[0], x : x + CROP[1]].copy() for y, x in OFFSETS]
+
+
+def motion_blur(rgb: np.ndarray) -> np.ndarray:
+    path = np.stack([np.linspace(-5, 5, 21), np.linspace(-2, 2, 21)], axis=1)  # an 11 px shake, mostly along x
+    return _uint8(convolve_psf(_tensor(rgb), motion_kernel_from_trajectory(path).float()))
+
+
+def defocus(rgb: np.ndarray) -> np.ndarray:
+    return _uint8(disk_blur(_tensor(rgb), 4.0))
+
+
+def upsampled(rgb: np.ndarray, factor: int) -> np.ndarray:
+    return _uint8(apply_mixres(_tensor(rgb), factor))
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> tuple[Path, dict[str, str]]:
+    """images/ of 8 sharp views + one motion-blurred, one defocused and one 3x-upsampled copy -> (scene, truth)."""
+    scene = tmp_path_factory.mktemp("capture")
+    (scene / "images").mkdir()
+    views = sharp_views()
+    images = {f"view_{i:02d}.png": v for i, v in enumerate(views)}
+    images["view_20.png"] = motion_blur(views[1])
+    images["view_21.png"] = defocus(views[2])
+    images["view_22.png"] = upsampled(views[3], 3)
+    for name, rgb in images.items():
+        write_image(scene / "images" / name, rgb)
+    truth = {n: "sharp" for n in images}
+    truth.update({"view_20.png": "motion", "view_21.png": "defocus", "view_22.png": "mixres"})
+    return scene, truth
+
+
+def test_capture_is_labelled(capture):
+    scene, truth = capture
+    entries = estimate_entries(scene / "images")
+    labels = {n: e["estimate"]["label"] for n, e in entries.items()}
+    assert labels == truth
+    assert entries["view_22.png"]["effects"]["mixres"]["factor"] == 3
+    assert entries["view_20.png"]["estimate"]["anisotropy"] > entries["view_21.png"]["estimate"]["anisotropy"]
+    for name, entry in entries.items():
+        assert entry["degraded"] == (truth[name] != "sharp")
+        assert entry["source"] == ESTIMATED
+        assert 0.0 <= entry["estimate"]["confidence"] <= 1.0
+
+
+@pytest.mark.parametrize("factor", [2, 3, 4])
+def test_upsampled_image_gets_its_factor(factor):
+    views = sharp_views()[:5]
+    estimates = estimate_degradations(views + [upsampled(views[0], factor)])
+    assert [e.label for e in estimates] == ["sharp"] * 5 + ["mixres"]
+    assert estimates[-1].mixres_factor == factor
+    assert all(e.mixres_factor == 1 for e in estimates[:5])
+
+
+def test_a_single_image_is_not_judged_sharp():
+    (est,) = estimate_degradations(sharp_views()[:1])
+    assert est.label == "unknown" and est.confidence == 0.0 and est.mixres_factor is None
+    (up,) = estimate_degradations([upsampled(sharp_views()[0], 2)])
+    assert up.label == "mixres" and up.mixres_factor == 2  # the grid needs no other image
+
+
+def test_a_set_of_only_blurred_images_has_no_sharp_image():
+    blurred = [defocus(v) for v in sharp_views()[:5]]
+    estimates = estimate_degradations(blurred, EstimateConfig(min_reference_edge_ratio=1.25))
+    assert not any(e.label == "sharp" for e in estimates)
+
+
+def _copy_scene(src: Path, dst: Path) -> Path:
+    (dst / "images").mkdir(parents=True)
+    for p in (src / "images").iterdir():
+        (dst / "images" / p.name).write_bytes(p.read_bytes())
+    return dst
+
+
+def test_cli_writes_records_the_reader_accepts_and_keeps_true_ones(capture, tmp_path):
+    scene = _copy_scene(capture[0], tmp_path / "scene")
+    true_entry = {"split": "train", "degraded": True, "effects": {"defocus": {"model": "disk", "radius_px": 4.0}}}
+    doc = {"version": 1, "generator": "test", "images": {"view_21.png": true_entry}}
+    (scene / "degradation.json").write_text(json.dumps(doc), encoding="utf8")
+
+    parse(["--scene", str(scene)]).main()
+    written = load_degradation_json(scene / "degradation.json")  # the data reader's own checks
+    names = sorted(p.name for p in (scene / "images").iterdir())
+    entries = match_entries(written, names, scene / "degradation.json")  # every image, no stray entry
+    assert written["images"]["view_21.png"] == true_entry
+    assert written["generator"] == "test"
+    records = {n: record_from_entry(n, "train", e) for n, e in entries.items()}
+    assert records["view_00.png"]["degraded"] is False and records["view_00.png"]["mixres_factor"] == 1
+    assert records["view_20.png"]["degraded"] is True and set(records["view_20.png"]["effects"]) == {"motion"}
+    assert records["view_22.png"]["mixres_factor"] == 3
+    assert all(entries[n]["source"] == ESTIMATED for n in names if n != "view_21.png")
+    assert not [p for p in scene.iterdir() if p.name.startswith(".")]  # no temp file left
+
+    # a user's edit of an estimated entry is an estimate still: re-running replaces it; --replace-records
+    # replaces true records too
+    parse(["--scene", str(scene), "--replace-records"]).main()
+    again = load_degradation_json(scene / "degradation.json")
+    assert again["images"]["view_21.png"]["source"] == ESTIMATED
+    assert again["images"]["view_21.png"]["effects"] == {"defocus": {"model": ESTIMATED}}
+
+
+def test_cli_leaves_nothing_half_written_on_a_bad_image(capture, tmp_path):
+    scene = _copy_scene(capture[0], tmp_path / "scene")
+    before = json.dumps({"version": 1, "images": {"view_00.png": {"degraded": False, "effects": {}}}})
+    (scene / "degradation.json").write_text(before, encoding="utf8")
+    (scene / "images" / "view_05.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    with pytest.raises(GSMSDRDataError, match="view_05.png"):
+        parse(["--scene", str(scene)]).main()
+    assert (scene / "degradation.json").read_text(encoding="utf8") == before
+    assert sorted(p.name for p in scene.iterdir()) == ["degradation.json", "images"]
+
+
+def test_cli_refuses_an_unreadable_degradation_json(capture, tmp_path):
+    scene = _copy_scene(capture[0], tmp_path / "scene")
+    (scene / "degradation.json").write_text("{not json", encoding="utf8")
+    with pytest.raises(GSMSDRDataError, match="degradation.json"):
+        parse(["--scene", str(scene)]).main()
+    assert (scene / "degradation.json").read_text(encoding="utf8") == "{not json"
+
+
+def test_empty_folder_and_missing_arguments_give_clear_errors(tmp_path):
+    (tmp_path / "images").mkdir()
+    with pytest.raises(GSMSDRDataError, match=f"no images in '{tmp_path / 'images'}'"):
+        parse(["--images", str(tmp_path / "images")]).main()
+    with pytest.raises(ValueError, match="exactly one of --scene"):
+        parse([]).main()
+    assert not (tmp_path / "degradation.json").exists()
+
+
+def test_images_folder_is_printed_not_written(capture, tmp_path):
+    scene = _copy_scene(capture[0], tmp_path / "scene")
+    entries = parse(["--images", str(scene / "images")]).main()
+    assert entries["view_20.png"]["estimate"]["label"] == "motion"
+    assert sorted(p.name for p in scene.iterdir()) == ["images"]
+
+
+def test_scene_records_are_cached_until_an_image_changes(capture, tmp_path):
+    scene = _copy_scene(capture[0], tmp_path / "scene")
+    first = estimate_scene_records(scene)
+    cache = scene / CACHE_FILE
+    assert cache.is_file() and first["view_21.png"]["estimate"]["label"] == "defocus"
+    doc = json.loads(cache.read_text(encoding="utf8"))
+    doc["images"]["view_21.png"]["estimate"]["label"] = "from-cache"
+    cache.write_text(json.dumps(doc), encoding="utf8")
+    assert estimate_scene_records(scene)["view_21.png"]["estimate"]["label"] == "from-cache"
+
+    write_image(scene / "images" / "view_21.png", sharp_views()[2])  # the defocused view replaced by a sharp one
+    os.utime(scene / "images" / "view_21.png", ns=(1, 1))
+    fresh = estimate_scene_records(scene)
+    assert fresh["view_21.png"]["estimate"]["label"] == "sharp"
+    assert not (scene / "degradation.json").exists()  # the cache never touches the scene's records
+
+
+def test_views_of_different_content_leave_the_kind_of_blur_unknown():
+    # Crops far apart show different things: the sharp views disagree about edge orientations as much as a blur
+    # would, so the blurred views are recorded as blurred by both kinds (the model simulates both).
+    photo = skimage.data.astronaut()
+    offsets = [(0, 0), (40, 60), (80, 120), (120, 200), (200, 40), (260, 180), (300, 256), (160, 100)]
+    views = [photo[y : y + 192, x : x + 256].copy() for y, x in offsets]
+    estimates = estimate_degradations(views + [motion_blur(views[1]), defocus(views[2])])
+    for est in estimates[-2:]:
+        assert est.label == "unknown" and est.blurred is True and est.mixres_factor == 1
+        entry = entry_from_estimate(est)
+        assert entry["degraded"] is True and set(entry["effects"]) == {"motion", "defocus"}
+    assert all(e.label in ("sharp", "unknown") and e.blurred is not True for e in estimates[:-2])
