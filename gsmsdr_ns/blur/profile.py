@@ -17,7 +17,7 @@ mixres, factor unknown yes (learns it)     no           no
 Depth decisions: defocus blur is a function of depth (circle of confusion ~ |1/d - 1/d_focus|), so depth is
 needed. Camera motion blur depends on depth through parallax for the translational part of the shake (pixel
 displacement ~ 1/d; the rotational part is depth independent); the paper's Table 8 shows the RGB-D input matters
-most for motion (-1.97 dB without it), so motion also asks for depth. A resolution loss of known or unknown
+most for motion, so motion also asks for depth. A resolution loss of known or unknown
 factor is the same for every depth, so it does not.
 
 :class:`ResolutionLossModel` applies the degrade tool's mixed-resolution operator
