@@ -59,6 +59,7 @@ def has(module: torch.nn.Module, cls: type) -> bool:
 def test_blur_package_imports_without_nerfstudio():
     code = (
         "import sys; import gsmsdr_ns.blur.field, gsmsdr_ns.blur.profile, gsmsdr_ns.blur.hpko, gsmsdr_ns.blur.maan; "
+        "import gsmsdr_ns.blur.degradation_model, gsmsdr_ns.blur.preview, gsmsdr_ns.timing_hooks; "
         "bad = [m for m in sys.modules if m.split('.')[0] in ('nerfstudio', 'gsplat', 'tyro')]; "
         "assert not bad, bad"
     )

@@ -10,15 +10,15 @@
   resolution-loss model, forward and backward;
 * ``densification``: the densification strategy's hooks (``strategy.step_pre_backward`` /
   ``step_post_backward``: gradient statistics, split / duplicate / prune, optimizer state surgery);
-* ``data``: the datamanager's ``next_train`` (picking and copying the training image);
+* ``data``: the datamanager's ``next_train`` (picking and copying the training image; ``GSMSDRDatamanager``);
 * ``other``: everything else in the step: the camera pose, background and composite, the mask blend, the losses
   (L1 + D-SSIM, mask regulariser) and their backward, gradient bookkeeping between components, ``zero_grad``, the
   optimizer and scheduler steps and the training callbacks. It is the step's wall time minus the five categories above.
 
 How it attaches: :meth:`TimingRecorder.attach` registers the recorder with ``gsmsdr_ns.timing_hooks``; the model
 (``GSMSDRModel`` and its ``DegradationModel``) calls ``timed(category, ...)`` around its differentiable stages and
-``stage(category)`` around densification. The datamanager is nerfstudio's: its public ``next_train`` is wrapped on
-the instance while attached. ``detach()`` undoes both.
+``stage(category)`` around densification, and ``GSMSDRDatamanager.next_train`` is the ``data`` stage that starts a
+step. Nothing is replaced at run time; ``detach()`` unregisters the recorder.
 
 Backward time: each timed call registers tensor hooks at the component's boundary. A hook on a component's
 output fires when autograd starts that component's backward (the gradient with respect to the output is ready);
@@ -132,7 +132,6 @@ class TimingRecorder:
         timing_hooks.attach_recorder(self)
         self._attached = True
         self._restore.append(lambda: timing_hooks.detach_recorder(self))
-        self._wrap_next_train(pipeline.datamanager)
         return self
 
     def detach(self) -> None:
@@ -147,25 +146,6 @@ class TimingRecorder:
 
     def __exit__(self, *exc) -> None:
         self.detach()
-
-    def _wrap_next_train(self, datamanager: Any) -> None:
-        """Time nerfstudio's public ``datamanager.next_train`` (category ``data``; it starts a step)."""
-        original = datamanager.next_train
-        had_instance_attr = "next_train" in vars(datamanager)
-
-        def next_train(*args, **kwargs):
-            with self.span("data", starts_step=True):
-                return original(*args, **kwargs)
-
-        datamanager.next_train = next_train
-
-        def restore() -> None:
-            if had_instance_attr:
-                datamanager.next_train = original
-            else:
-                del datamanager.next_train
-
-        self._restore.append(restore)
 
     # -- the timing_hooks.StageRecorder interface -----------------------------------------------------------------
 

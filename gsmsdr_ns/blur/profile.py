@@ -37,8 +37,6 @@ import torch.nn.functional as F
 from kornia.geometry.transform import resize
 from torch import Tensor, nn
 
-from gsmsdr_ns.degrade.kernels import apply_mixres
-
 __all__ = [
     "DegradationProfile",
     "ProfileMode",
@@ -204,6 +202,9 @@ def resolution_loss(image: Tensor, factor: float, upsample: str = "bilinear") ->
     if factor <= 1:
         return image
     if float(factor).is_integer():
+        # imported here: the degrade package pulls in its CLI's dependencies (tyro), which blur/ does not need
+        from gsmsdr_ns.degrade.kernels import apply_mixres
+
         return apply_mixres(image, int(factor), upsample)
     H, W = image.shape[-2:]
     small = (max(1, round(H / factor)), max(1, round(W / factor)))

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import torch
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
-from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanagerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
@@ -27,6 +26,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
 from gsmsdr_ns.blur.field import BlurFieldConfig
 from gsmsdr_ns.plugin.auto_dataparser import GSMSDRAutoDataParserConfig
+from gsmsdr_ns.plugin.datamanager import GSMSDRDatamanagerConfig
 from gsmsdr_ns.plugin.model import GSMSDRModelConfig
 
 MAX_STEPS = 30000
@@ -84,7 +84,7 @@ def _trainer_config(method_name: str, model: GSMSDRModelConfig, max_steps: int) 
         mixed_precision=False,
         machine=MachineConfig(device_type=default_device_type()),
         pipeline=VanillaPipelineConfig(
-            datamanager=FullImageDatamanagerConfig(
+            datamanager=GSMSDRDatamanagerConfig(
                 dataparser=GSMSDRAutoDataParserConfig(),
                 cache_images="gpu",
                 cache_images_type="uint8",
