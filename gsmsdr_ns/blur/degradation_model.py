@@ -319,7 +319,8 @@ class DegradationModel(nn.Module):
         lens_kernels = None
         if lens:
             assert self.blur_field.thin_lens is not None and depth is not None
-            lens_kernels = timed("blur_field", self.blur_field.thin_lens, depth, view_ids, lens_window, lens_pixel_scale)
+            thin_lens = self.blur_field.thin_lens
+            lens_kernels = timed("blur_field", thin_lens, depth, view_ids, lens_window, lens_pixel_scale)
             image = timed("kernels", BlurField.blur, image, lens_kernels, self.blur_field.config.linear_light)
         kernels = mask = None
         if field:

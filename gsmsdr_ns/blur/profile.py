@@ -22,8 +22,8 @@ factor is the same for every depth, so it does not.
 
 :class:`ResolutionLossModel` applies the degrade tool's mixed-resolution operator
 (``gsmsdr_ns.degrade.kernels.apply_mixres``: kornia antialiased bilinear downscale to round(H/f) x round(W/f),
-bilinear (or bicubic) upscale back, clamp to [0, 1]; :func:`resolution_loss`) and adds a small learned residual kernel, initialised to
-the identity, for any mismatch with how a real camera lost its resolution.
+bilinear (or bicubic) upscale back, clamp to [0, 1]; :func:`resolution_loss`) and adds a small learned residual
+kernel, initialised to the identity, for any mismatch with how a real camera lost its resolution.
 """
 
 from __future__ import annotations

@@ -17,7 +17,8 @@ Differences from ``SplatfactoModel``, each kept as a small override that extends
   for blurred images, the resolution-loss model for images of known lower resolution, nothing for sharp ones. Its
   HPKO state advances in a training callback before each iteration. While training, ``rgb`` is the render passed
   through the image's degradation model (what the loss compares with the degraded photo) and ``rgb_sharp`` the
-  render itself; at evaluation ``rgb`` is always the sharp render, and the viewer can also show ``degraded``, ``kernel_size`` and ``blur_mask``;
+  render itself; at evaluation ``rgb`` is always the sharp render, and the viewer can also show ``degraded``,
+  ``kernel_size`` and ``blur_mask``;
 * the stages of a step are marked for ``gsmsdr_ns.timing_hooks`` (rasterization, densification; the degradation
   model marks the blur field and kernel application): no-ops unless a timing recorder is attached.
 """
