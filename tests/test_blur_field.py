@@ -19,7 +19,7 @@ from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo, kernel_prior_logits, kernel_upsample_matrix
 from gsmsdr_ns.blur.kernels import apply_image_kernels, apply_pixel_kernels
 from gsmsdr_ns.blur.maan import GAKA, MCA, SAFM, BAGSFeatures, RGBDFeatures, normalize_depth, positional_encoding_2d
-from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, down_up, effective_factor
+from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, effective_factor, resolution_loss
 
 NUM_VIEWS = 5
 
@@ -59,6 +59,7 @@ def has(module: torch.nn.Module, cls: type) -> bool:
 def test_blur_package_imports_without_nerfstudio():
     code = (
         "import sys; import gsmsdr_ns.blur.field, gsmsdr_ns.blur.profile, gsmsdr_ns.blur.hpko, gsmsdr_ns.blur.maan; "
+        "import gsmsdr_ns.blur.degradation_model, gsmsdr_ns.blur.preview, gsmsdr_ns.timing_hooks; "
         "bad = [m for m in sys.modules if m.split('.')[0] in ('nerfstudio', 'gsplat', 'tyro')]; "
         "assert not bad, bad"
     )
@@ -474,7 +475,7 @@ def test_profile_from_mode():
 # ------------------------------------------------------------------------------------------------ resolution loss
 
 
-def test_resolution_loss_model_identity_residual_equals_down_up():
+def test_resolution_loss_model_identity_residual_equals_the_operator():
     g = torch.Generator().manual_seed(1)
     render = torch.rand(4, 3, 30, 41, generator=g).requires_grad_()
     factors = [4, 1, 2, 3]
@@ -482,9 +483,9 @@ def test_resolution_loss_model_identity_residual_equals_down_up():
         model = ResolutionLossModel(num_views=num_views, kernel_size=3)
         out = model(render, factors, torch.tensor([0, 1, 2, 4]))
         for i, f in enumerate(factors):
-            torch.testing.assert_close(out[i : i + 1], down_up(render[i : i + 1], f), rtol=0, atol=1e-6)
+            torch.testing.assert_close(out[i : i + 1], resolution_loss(render[i : i + 1], f), rtol=0, atol=1e-6)
         torch.testing.assert_close(out[1:2], render[1:2], rtol=0, atol=1e-6)  # factor 1: untouched
-    assert down_up(render, 1) is render
+    assert resolution_loss(render, 1) is render and resolution_loss(render, 0.5) is render
     # learnable: gradients reach the residual and the render; kernels keep summing to 1
     model = ResolutionLossModel(num_views=NUM_VIEWS, kernel_size=5)
     model(render, torch.tensor(factors), torch.tensor([0, 1, 2, 4])).square().mean().backward()
@@ -495,12 +496,19 @@ def test_resolution_loss_model_identity_residual_equals_down_up():
     assert effective_factor(4, 2) == 2 and effective_factor(4, 4) == 1
 
 
-def test_down_up_matches_the_degrade_tool():
-    kernels = pytest.importorskip("gsmsdr_ns.degrade.kernels")
+def test_resolution_loss_is_the_degrade_tools_operator_and_accepts_fractional_factors():
+    from gsmsdr_ns.degrade.kernels import apply_mixres
+
     render = torch.rand(2, 3, 37, 50, generator=torch.Generator().manual_seed(2))
     for f in (1, 2, 3, 4):
         for up in ("bilinear", "bicubic"):
-            assert torch.equal(down_up(render, f, up), kernels.apply_mixres(render, f, up))
+            assert torch.equal(resolution_loss(render, f, up), apply_mixres(render, f, up))
+            assert torch.equal(resolution_loss(render, float(f), up), apply_mixres(render, f, up))
+    # a factor 3 image seen at 1/2 resolution: shrunk to round(37 / 1.5) x round(50 / 1.5), between x1 and x2
+    half = resolution_loss(render, 1.5)
+    assert half.shape == render.shape and 0.0 <= float(half.min()) and float(half.max()) <= 1.0
+    error = lambda x: float((x - render).abs().mean())  # noqa: E731
+    assert 0.0 < error(half) < error(resolution_loss(render, 2))
 
 
 def test_float64_field():

@@ -27,7 +27,7 @@ from test_plugin_model import look_from, make_camera, seed_cloud
 
 import gsmsdr_ns.plugin  # noqa: F401  (checkpoint globals for torch.load)
 from gsmsdr_ns.blur import BlurField, BlurFieldConfig, ResolutionLossModel
-from gsmsdr_ns.plugin.degradation_plan import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
+from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
 from gsmsdr_ns.plugin.method_config import gsmsdr_trainer_config
 from gsmsdr_ns.plugin.model import GSMSDRModelConfig, GSMSDRWarning
 
@@ -131,7 +131,7 @@ def test_blur_field_is_never_evaluated_on_sharp_training_images(scenes, tmp_path
     assert len(sharp) == 3 and {i for i, p in enumerate(model.profiles) if p.is_sharp} == sharp
     assert isinstance(model.blur_field, BlurField) and model.blur_field.uses_depth
     assert model.resolution_model is None
-    assert torch.isfinite(model.train_camera_centres).all()  # filled from the datamanager at training start
+    assert torch.isfinite(model.degradation.train_camera_centres).all()  # filled from the datamanager at training start
 
     calls: List[tuple] = []
     handle = count_calls(model.blur_field, calls)
@@ -164,7 +164,7 @@ def test_sharp_scene_builds_no_degradation_model(scenes, tmp_path):
     model = run.model
     assert all(p.is_sharp for p in model.profiles)
     assert model.blur_field is None and model.resolution_model is None and model.hpko is None
-    assert not any(k.startswith(("blur_field", "resolution_model", "train_camera")) for k in model.state_dict())
+    assert not any(k.startswith("degradation.") for k in model.state_dict())
     assert set(run.trainer.optimizers.parameters) & {"blur_field", "resolution_model"} == set()
     run.train(4)
     assert all(s["keys"] == {"rgb", "depth", "accumulation", "background"} for s in run.steps)
@@ -306,23 +306,65 @@ def test_records_must_match_the_training_images():
 
 
 def test_hpko_scale_follows_the_current_render_downscale():
-    """num_downscales 2, resolution_schedule 4: 1/4 -> 1/2 -> full resolution; K = 5 -> 9 -> 17 in step."""
+    """num_downscales 2, resolution_schedule 4: 1/4 -> 1/2 -> full resolution; K = 5 -> 9 -> 17 in step. The HPKO
+    state advances in the model's BEFORE_TRAIN_ITERATION callback, not while rendering."""
     motion = {"degradations": records("motion")}
     model = build(motion, num_downscales=2, resolution_schedule=4, blur_field=BlurFieldConfig(warmup=0))
     model.train()
     model.optimizers = None
+    callbacks = model.get_training_callbacks(TrainingCallbackAttributes(None, None, None, None))
+    hpko_steps = [c for c in callbacks if c.func == model.degradation.step]
+    assert len(hpko_steps) == 1
+    assert hpko_steps[0].where_to_run == [TrainingCallbackLocation.BEFORE_TRAIN_ITERATION]
     calls: List[tuple] = []
     handle = count_calls(model.blur_field, calls)
     camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)
     camera.metadata = {"cam_idx": 1}
+    model.get_outputs(camera)
+    assert model.hpko_state["last_step"] is None  # rendering does not advance it
+    calls.clear()
     for step in range(10):
         model.step = step
+        hpko_steps[0].run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
         outputs = model.get_outputs(camera)
         assert outputs["rgb"].shape == outputs["rgb_sharp"].shape == outputs["blur_mask"].shape[:2] + (3,)
     handle.remove()
     assert [(h, s) for _, h, s in calls] == [(12, 3)] * 4 + [(24, 2)] * 4 + [(48, 1)] * 2
     assert model.hpko_state["first_step"] == {3: 0, 2: 4, 1: 8}
     assert model.hpko_state["kernel_size"] == 17
+
+
+def test_warm_up_follows_the_step_the_callback_gave():
+    """The blur field is skipped until the step given to ``DegradationModel.step`` reaches the warm-up."""
+    model = build({"degradations": records("motion")}, blur_field=BlurFieldConfig(warmup=3))
+    model.train()
+    model.optimizers = None
+    camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)
+    camera.metadata = {"cam_idx": 0}
+    ran = []
+    for step in range(5):
+        model.step = step
+        model.degradation.step(step)
+        ran.append("blur_mask" in model.get_outputs(camera))
+    assert ran == [False, False, False, True, True]
+
+
+def test_a_checkpoint_from_before_the_degradation_model_loads():
+    """Old layout: ``blur_field.*``, ``resolution_model.*`` and ``train_camera_centres`` on the model itself."""
+    metadata = {"degradations": records("motion", 2) + records("mixres", 2)[1:]}
+    model = build(metadata, n=3)
+    model.set_train_camera_centres(torch.stack([look_from([float(i), 0.5, 1.0]) for i in range(3)]))
+    with torch.no_grad():
+        model.resolution_model.residual.normal_()
+        next(model.blur_field.parameters()).add_(1.0)
+    state = model.state_dict()
+    old = {k.removeprefix("degradation."): v.clone() for k, v in state.items()}
+    assert any(k.startswith("blur_field.heads.") for k in old)
+    assert "train_camera_centres" in old and "resolution_model.residual" in old
+    fresh = build(metadata, n=3)
+    fresh.load_state_dict(old)  # strict
+    for key, value in state.items():
+        torch.testing.assert_close(fresh.state_dict()[key], value)
 
 
 @pytest.mark.parametrize("mode, kind", [("full", "motion"), ("view", "motion"), ("view", "defocus")])
@@ -388,8 +430,8 @@ def test_ns_train_gsmsdr_on_a_motion_scene_trains_the_blur_field(motion_run):
     assert tags["Train Metrics Dict/blur_kernel_size"][-1] == 17
     ckpt = torch.load(motion_run / "nerfstudio_models" / f"step-{CLI_STEPS - 1:09d}.ckpt", map_location="cpu")
     state = ckpt["pipeline"]
-    assert torch.isfinite(state["_model.train_camera_centres"]).all()
-    assert any(k.startswith("_model.blur_field.heads.") for k in state)
+    assert torch.isfinite(state["_model.degradation.train_camera_centres"]).all()
+    assert any(k.startswith("_model.degradation.blur_field.heads.") for k in state)
     assert ckpt["optimizers"]["blur_field"]["state"]  # Adam stepped the field
 
 
@@ -410,7 +452,7 @@ def test_checkpoint_with_a_blur_field_loads_for_the_viewer(motion_run):
     model = pipeline.model
     assert step == CLI_STEPS - 1 and model.step == step
     state = torch.load(motion_run / "nerfstudio_models" / f"step-{step:09d}.ckpt", map_location="cpu")["pipeline"]
-    torch.testing.assert_close(model.train_camera_centres, state["_model.train_camera_centres"])
+    torch.testing.assert_close(model.degradation.train_camera_centres, state["_model.degradation.train_camera_centres"])
     camera, batch = pipeline.datamanager.fixed_indices_eval_dataloader[0]
     outputs = model.get_outputs_for_camera(camera)
     assert {"degraded", "kernel_size", "blur_mask"} <= set(outputs)
@@ -429,7 +471,7 @@ def test_ns_train_gsmsdr_lite_with_ablation_switches(scenes, tmp_path):
     blur = config.pipeline.model.blur_field
     assert (blur.mode, blur.gaka, blur.size, config.pipeline.model.sh_degree) == ("msd_only", False, "lite", 1)
     state = torch.load(run_dir / "nerfstudio_models" / f"step-{9:09d}.ckpt", map_location="cpu")["pipeline"]
-    field_keys = [k for k in state if k.startswith("_model.blur_field.")]
+    field_keys = [k for k in state if k.startswith("_model.degradation.blur_field.")]
     assert field_keys and not any(".mca." in k or "gaka" in k for k in field_keys)  # msd_only: BAGS' plain CNN
     tags = scalar_tags(run_dir)
     assert tags["Train Loss Dict/blur_mask_reg"] and all(math.isfinite(v) for v in tags["Train Loss"])
@@ -445,7 +487,7 @@ def test_ns_train_gsmsdr_with_the_view_mode_field(scenes, tmp_path):
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-5000:]
     run_dir = tmp_path / "outputs" / "motion" / "gsmsdr-lite" / "view"
     checkpoint = torch.load(run_dir / "nerfstudio_models" / f"step-{9:09d}.ckpt", map_location="cpu")
-    field_keys = [k for k in checkpoint["pipeline"] if k.startswith("_model.blur_field.")]
+    field_keys = [k for k in checkpoint["pipeline"] if k.startswith("_model.degradation.blur_field.")]
     assert field_keys and all(".view_logits." in k for k in field_keys), field_keys  # no mask: m = 1
     assert set(checkpoint["optimizers"]) >= {"blur_view_kernels"} and "blur_field" not in checkpoint["optimizers"]
     tags = scalar_tags(run_dir)
@@ -465,7 +507,7 @@ def test_ns_train_on_a_defocus_scene_trains_the_thin_lens(scenes, tmp_path):
     run_dir = tmp_path / "outputs" / "defocus" / "gsmsdr-lite" / "lens"
     checkpoint = torch.load(run_dir / "nerfstudio_models" / f"step-{29:09d}.ckpt", map_location="cpu")
     state = checkpoint["pipeline"]
-    prefix = "_model.blur_field.thin_lens."
+    prefix = "_model.degradation.blur_field.thin_lens."
     assert {k[len(prefix):] for k in state if k.startswith(prefix)} == {
         "log_aperture", "view_log_aperture", "inverse_focus", "focus_initialised"}  # fmt: skip
     assert "blur_defocus" in checkpoint["optimizers"]

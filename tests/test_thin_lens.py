@@ -14,7 +14,7 @@ from gsmsdr_ns.blur.defocus import ThinLensDefocus, occluding_disk_kernels, soft
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.kernels import apply_pixel_kernels
 from gsmsdr_ns.degrade.kernels import defocus_radius
-from gsmsdr_ns.plugin.degradation_plan import kernel_spread
+from gsmsdr_ns.blur.preview import kernel_spread
 
 
 def test_soft_disk_kernels_sum_to_one_and_grow_with_the_radius():

@@ -1,37 +1,37 @@
-"""Where a training step's time goes: a recorder attached to a nerfstudio pipeline from the outside.
+"""Where a training step's time goes: a recorder of the stages the model code marks (``gsmsdr_ns.timing_hooks``).
 
 :class:`TimingRecorder` splits the wall time of training steps into
 
-* ``rasterization``: ``model._rasterize`` (parameter activation, projection, SH, tile sorting, pixel kernel), forward
-  and backward;
-* ``blur_field``: the blur field module (MAAN features, MCA, HPKO heads: kernel and mask prediction; the thin
-  lens's disk kernels), forward and backward;
+* ``rasterization``: the model's rasterizer call (parameter activation, projection, SH, tile sorting, pixel kernel),
+  forward and backward;
+* ``blur_field``: the blur field module (MAAN features, MCA, HPKO heads: kernel and mask prediction) and the thin
+  lens's disk kernels, forward and backward;
 * ``kernels``: kernel application (``BlurField.blur``: ``apply_pixel_kernels`` in linear light) and the
   resolution-loss model, forward and backward;
 * ``densification``: the densification strategy's hooks (``strategy.step_pre_backward`` /
   ``step_post_backward``: gradient statistics, split / duplicate / prune, optimizer state surgery);
-* ``data``: ``datamanager.next_train`` (picking and copying the training image);
+* ``data``: the datamanager's ``next_train`` (picking and copying the training image; ``GSMSDRDatamanager``);
 * ``other``: everything else in the step: the camera pose, background and composite, the mask blend, the losses
   (L1 + D-SSIM, mask regulariser) and their backward, gradient bookkeeping between components, ``zero_grad``, the
   optimizer and scheduler steps and the training callbacks. It is the step's wall time minus the five categories above.
 
-How it attaches (nothing in the model is edited): instance attributes shadow ``model._rasterize``,
-``datamanager.next_train`` and the strategy's two hooks; forward pre/post hooks time the ``blur_field`` (and its
-``thin_lens``) and ``resolution_model`` modules; ``BlurField.blur`` (a staticmethod) is wrapped on the class while
-the recorder is attached. ``detach()`` restores all of it.
+How it attaches: :meth:`TimingRecorder.attach` registers the recorder with ``gsmsdr_ns.timing_hooks``; the model
+(``GSMSDRModel`` and its ``DegradationModel``) calls ``timed(category, ...)`` around its differentiable stages and
+``stage(category)`` around densification, and ``GSMSDRDatamanager.next_train`` is the ``data`` stage that starts a
+step. Nothing is replaced at run time; ``detach()`` unregisters the recorder.
 
-Backward time: the forward wrappers register tensor hooks at each component's boundary. A hook on a component's
+Backward time: each timed call registers tensor hooks at the component's boundary. A hook on a component's
 output fires when autograd starts that component's backward (the gradient with respect to the output is ready);
-hooks on its inputs (including leaf parameters) fire as its backward hands gradients on. The time from the first to
-the last of these events is charged to the component, except while another component's backward runs in between
-(PyTorch's CPU autograd engine runs ready nodes newest-first, so the blur field's backward runs inside the kernel
-application's window; the recorder switches category at every event, so nested time goes to the inner component).
-It is an attribution by event times, not a profiler: autograd glue that runs between two events of one component
-(a ``permute``'s backward, gradient accumulation) is charged to that component. With CUDA tensors, ``sync_cuda``
-synchronises the device at every event so that wall time means execution time (this slows CUDA training down;
-results are unchanged).
+hooks on its inputs (including the leaf parameters of a module it ran) fire as its backward hands gradients on.
+The time from the first to the last of these events is charged to the component, except while another component's
+backward runs in between (PyTorch's CPU autograd engine runs ready nodes newest-first, so the blur field's backward
+runs inside the kernel application's window; the recorder switches category at every event, so nested time goes to
+the inner component). It is an attribution by event times, not a profiler: autograd glue that runs between two
+events of one component (a ``permute``'s backward, gradient accumulation) is charged to that component. With CUDA
+tensors, ``sync_cuda`` synchronises the device at every event so that wall time means execution time (this slows
+CUDA training down; results are unchanged).
 
-The recorder only observes: hooks return None, wrappers return what the wrapped call returned, and nothing touches
+The recorder only observes: hooks return None, timed calls return what the call returned, and nothing touches
 random state, so training is bit-identical with and without it (``tests/test_bench_suite.py`` checks the losses).
 """
 
@@ -44,6 +44,8 @@ from collections import defaultdict
 from typing import Any, Callable, Dict, Iterator, List, Optional
 
 import torch
+
+from gsmsdr_ns import timing_hooks
 
 CATEGORIES = ("rasterization", "blur_field", "kernels", "densification", "data", "other")
 """Time categories, in the order tables and plots show them."""
@@ -124,27 +126,12 @@ class TimingRecorder:
     # -- attaching --------------------------------------------------------------------------------------------
 
     def attach(self, pipeline) -> "TimingRecorder":
-        """Instrument ``pipeline`` (a nerfstudio pipeline whose model is a ``GSMSDRModel``). Returns self."""
+        """Record the stages of ``pipeline`` (a nerfstudio pipeline whose model is a ``GSMSDRModel``). Returns self."""
         if self._attached:
             raise RuntimeError("TimingRecorder is already attached; detach() it first")
+        timing_hooks.attach_recorder(self)
         self._attached = True
-        model = pipeline.model
-        self._wrap_method(pipeline.datamanager, "next_train", "data", backward=False, starts_step=True)
-        self._wrap_method(model, "_rasterize", "rasterization")
-        strategy = getattr(model, "strategy", None)
-        if strategy is not None:
-            self._wrap_method(strategy, "step_pre_backward", "densification", backward=False)
-            self._wrap_method(strategy, "step_post_backward", "densification", backward=False)
-        blur_field = getattr(model, "blur_field", None)
-        modules = (
-            (blur_field, "blur_field"),
-            (getattr(blur_field, "thin_lens", None), "blur_field"),  # called by the model, not inside the field
-            (getattr(model, "resolution_model", None), "kernels"),
-        )
-        for module, category in modules:
-            if isinstance(module, torch.nn.Module):
-                self._hook_module(module, category)
-        self._wrap_blur()
+        self._restore.append(lambda: timing_hooks.detach_recorder(self))
         return self
 
     def detach(self) -> None:
@@ -160,75 +147,37 @@ class TimingRecorder:
     def __exit__(self, *exc) -> None:
         self.detach()
 
-    def _wrap_method(self, obj: Any, name: str, category: str, backward: bool = True, starts_step: bool = False):
-        original = getattr(obj, name)
-        had_instance_attr = name in vars(obj)
-        recorder = self
+    # -- the timing_hooks.StageRecorder interface -----------------------------------------------------------------
 
-        def wrapper(*args, **kwargs):
-            if not recorder._active:
-                return original(*args, **kwargs)
-            if starts_step:
-                recorder._new_step()
-            started = recorder._now()
-            out = original(*args, **kwargs)
-            recorder._add_forward(category, recorder._now() - started)
-            if backward:
-                recorder._mark_backward(category, out, (args, kwargs))
-            return out
+    def record(self, category: str, function: Callable[..., Any], args: tuple, kwargs: dict) -> Any:
+        """``function(*args, **kwargs)``, its forward time (and, through boundary hooks, its backward time) charged
+        to ``category`` while :meth:`measure` is active."""
+        if not self._active:
+            return function(*args, **kwargs)
+        started = self._now()
+        out = function(*args, **kwargs)
+        self._add_forward(category, self._now() - started)
+        inputs: Any = (args, kwargs)
+        if isinstance(function, torch.nn.Module) and torch.is_grad_enabled():
+            params = {id(p): p for p in function.parameters() if p.requires_grad}
+            used = _reachable_leaves([t for t in _tensors(out) if t.requires_grad], params)
+            inputs = (args, kwargs, used)
+        self._mark_backward(category, out, inputs)
+        return out
 
-        setattr(obj, name, wrapper)
-
-        def restore() -> None:
-            if had_instance_attr:
-                setattr(obj, name, original)
-            else:
-                delattr(obj, name)
-
-        self._restore.append(restore)
-
-    def _hook_module(self, module: torch.nn.Module, category: str) -> None:
-        starts: List[float] = []
-
-        def pre_hook(_module, _args):
-            if self._active:
-                starts.append(self._now())
-
-        def post_hook(_module, args, output):
-            if self._active and starts:
-                self._add_forward(category, self._now() - starts.pop())
-                params = {id(p): p for p in _module.parameters() if p.requires_grad}
-                used = _reachable_leaves([t for t in _tensors(output) if t.requires_grad], params)
-                self._mark_backward(category, output, (args, used))
-
-        handles = [module.register_forward_pre_hook(pre_hook), module.register_forward_hook(post_hook)]
-        self._restore.append(lambda: [h.remove() for h in handles])
-
-    def _wrap_blur(self) -> None:
-        """``BlurField.blur`` (the kernel application, called by ``degrade`` and for the thin lens) is a staticmethod
-        the model calls through the class: wrap it there."""
-        from gsmsdr_ns.blur.field import BlurField
-
-        original = BlurField.__dict__["blur"]  # the staticmethod object
-        function = original.__func__
-        recorder = self
-
-        def blur(*args, **kwargs):
-            if not recorder._active:
-                return function(*args, **kwargs)
-            started = recorder._now()
-            out = function(*args, **kwargs)
-            recorder._add_forward("kernels", recorder._now() - started)
-            recorder._mark_backward("kernels", out, (args, kwargs))
-            return out
-
-        blur.__doc__ = function.__doc__
-        BlurField.blur = staticmethod(blur)  # type: ignore[method-assign]
-
-        def restore() -> None:
-            BlurField.blur = original  # type: ignore[method-assign]
-
-        self._restore.append(restore)
+    @contextlib.contextmanager
+    def span(self, category: str, starts_step: bool = False) -> Iterator[None]:
+        """The block's wall time goes to ``category`` (forward only) while :meth:`measure` is active."""
+        if not self._active:
+            yield
+            return
+        if starts_step:
+            self._new_step()
+        started = self._now()
+        try:
+            yield
+        finally:
+            self._add_forward(category, self._now() - started)
 
     # -- recording --------------------------------------------------------------------------------------------
 
@@ -244,18 +193,6 @@ class TimingRecorder:
             self.wall += self._now() - started
             self._active = False
             self._new_step()
-
-    @contextlib.contextmanager
-    def paused(self) -> Iterator[None]:
-        """Inside :meth:`measure`: do not record (and do not count the wall time of) what runs inside."""
-        was_active = self._active
-        self._active = False
-        started = self._now()
-        try:
-            yield
-        finally:
-            self.wall -= (self._now() - started) if was_active else 0.0
-            self._active = was_active
 
     def _new_step(self) -> None:
         """A new step starts: forget the previous backward's state and its hooks on leaf tensors."""

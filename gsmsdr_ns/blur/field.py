@@ -110,8 +110,7 @@ class BlurFieldConfig:
     linear_light: bool = True
     """Apply the kernels to linear light (the sRGB-encoded render decoded, blurred, re-encoded): a sensor
     integrates irradiance over the exposure and the aperture before the camera's tone curve. False: blur the
-    encoded values (BAGS). Measured on strong camera shake (160x120): the best single kernel per view fits the
-    blurred photo from its sharp twin to 36.4 dB in linear light, 30.4 dB on encoded values."""
+    encoded values (BAGS)."""
     view_kernels: bool = True
     """Add a learnable per-view kernel (one K_s x K_s logit table per training view and scale) to the predicted
     per-pixel kernels: camera shake blurs a whole image along one path, which a per-view kernel captures with few
@@ -366,7 +365,7 @@ class BlurField(nn.Module):
         return loss_dict
 
     def get_param_groups(self, param_groups: Dict[str, List[nn.Parameter]]) -> Dict[str, List[nn.Parameter]]:
-        """Add the ``blur_field`` group (constant-rate Adam: 1e-4 in the method presets, BAGS uses 5e-4) and, with per-view kernels,
+        """Add the ``blur_field`` group (the feature network, MCA and per-pixel heads) and, with per-view kernels,
         ``blur_view_kernels`` (each view's table gets a gradient only when that view is drawn: it needs a higher
         learning rate) and, with a thin lens, ``blur_defocus``."""
         view = self.heads.per_view_parameters()

@@ -334,8 +334,7 @@ class ViewKernels(nn.Module):
     scale; with ``progressive`` each finer scale adds its table to the coarser kernel re-sampled on its grid
     (:func:`kernel_upsample_matrix`), as :class:`HPKOHeads` does. The mask is 1: a per-view blend
     ``m * k + (1 - m) * identity`` is itself a kernel, so a learnt mask adds nothing but, under the mask
-    regulariser, a pull toward less blur (measured on strong shake, 160x120: 24.14 dB with the mask held near 1 and
-    no regulariser against 23.87 dB with a learnt mask).
+    regulariser, a pull toward less blur.
 
     ``forward(view_ids [B], scale, height, width) -> (kernel_weights [B, K_s^2, H, W], mask [B, 1, H, W])``, both
     expanded (stride 0) over the pixels: ``BlurField.degrade`` applies such kernels as one convolution.

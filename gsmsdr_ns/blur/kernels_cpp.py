@@ -5,10 +5,9 @@ Built by the loader it shares with the rasterizer's kernel (`gsmsdr_ns._cpp_ext`
 once per process. `pixel_kernels_cpp_available()` and `pixel_kernels_cpp_error()` never raise, so the caller
 can fall back to the PyTorch twin with a clear reason.
 
-Why a compiled kernel at all: the PyTorch twin issues about 3 K^2 small ops per forward+backward (867 at K=17), and
-with OpenMP every op is a parallel region ending in a barrier. On a 2-core machine shared with other processes each
-barrier waits for a descheduled thread, which made the loop 2x slower than F.unfold at K=17 and 3.5x slower at K=5
-(measured; single-threaded the same loop is 10x faster than F.unfold). The C++ kernel opens one region per call.
+Why a compiled kernel at all: the PyTorch twin issues about 3 K^2 small ops per forward+backward, and with OpenMP
+every op is a parallel region ending in a barrier. On a machine shared with other processes each barrier waits for a
+descheduled thread. The C++ kernel opens one region per call.
 """
 
 from __future__ import annotations

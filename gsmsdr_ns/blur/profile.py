@@ -1,8 +1,8 @@
 """Per-image degradation profiles and the resolution-loss operator for known mixed-resolution factors.
 
 A :class:`DegradationProfile` says what happened to one training image (from the per-image entries of
-``degradation.json``, contract ``notes_tmp/degrade_spec.md``, or the dataparsers' records, see
-``gsmsdr_ns.data.degradation``) and therefore which model parts it needs:
+``degradation.json`` or the dataparsers' records, see ``gsmsdr_ns.data.degradation``) and therefore which model
+parts it needs (:func:`training_profiles` builds one per training image):
 
 =====================  ==================  ===========  ========================================
 profile                needs_blur_field    needs_depth  resolution model
@@ -17,26 +17,35 @@ mixres, factor unknown yes (learns it)     no           no
 Depth decisions: defocus blur is a function of depth (circle of confusion ~ |1/d - 1/d_focus|), so depth is
 needed. Camera motion blur depends on depth through parallax for the translational part of the shake (pixel
 displacement ~ 1/d; the rotational part is depth independent); the paper's Table 8 shows the RGB-D input matters
-most for motion (-1.97 dB without it), so motion also asks for depth. A resolution loss of known or unknown
+most for motion, so motion also asks for depth. A resolution loss of known or unknown
 factor is the same for every depth, so it does not.
 
-:class:`ResolutionLossModel` re-creates the degrade tool's mixed-resolution operator exactly
+:class:`ResolutionLossModel` applies the degrade tool's mixed-resolution operator
 (``gsmsdr_ns.degrade.kernels.apply_mixres``: kornia antialiased bilinear downscale to round(H/f) x round(W/f),
-bilinear (or bicubic) upscale back, clamp to [0, 1]) and adds a small learned residual kernel, initialised to
-the identity, for any mismatch with how a real camera lost its resolution.
+bilinear (or bicubic) upscale back, clamp to [0, 1]; :func:`resolution_loss`) and adds a small learned residual
+kernel, initialised to the identity, for any mismatch with how a real camera lost its resolution.
 """
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
-from typing import Any, Literal, Mapping, Optional, Sequence, Union
+from typing import Any, List, Literal, Mapping, Optional, Sequence, Union
 
 import torch
 import torch.nn.functional as F
 from kornia.geometry.transform import resize
 from torch import Tensor, nn
 
-__all__ = ["DegradationProfile", "ProfileMode", "down_up", "effective_factor", "ResolutionLossModel"]
+__all__ = [
+    "DegradationProfile",
+    "ProfileMode",
+    "effective_factor",
+    "resolution_loss",
+    "ResolutionLossModel",
+    "training_profiles",
+    "describe_profiles",
+]
 
 ProfileMode = Literal["auto", "motion", "defocus", "mixres", "sharp"]
 _MODES = ("auto", "motion", "defocus", "mixres", "sharp")
@@ -181,34 +190,32 @@ def effective_factor(factor: float, downscale: float = 1.0) -> float:
     return factor / downscale
 
 
-def down_up(image: Tensor, factor: float, upsample: str = "bilinear", clamp: bool = True) -> Tensor:
-    """The degrade tool's mixed-resolution operator, differentiable.
+def resolution_loss(image: Tensor, factor: float, upsample: str = "bilinear") -> Tensor:
+    """The degrade tool's mixed-resolution operator at any factor, differentiable. [B, C, H, W] -> [B, C, H, W]
 
-    Shrink by ``factor`` (kornia ``resize``, bilinear with antialias, to ``max(1, round(H / f)) x max(1, round(W /
-    f))``), enlarge back to H x W with ``upsample`` (align_corners False) and clamp to [0, 1] as the tool does
-    (a no-op for bilinear on values in [0, 1]). ``factor <= 1`` returns ``image`` unchanged.
-    Identical to ``gsmsdr_ns.degrade.kernels.apply_mixres`` for integer factors.
-
-    Args:
-        image: [B, C, H, W]
-    Returns:
-        [B, C, H, W]
+    ``factor <= 1`` returns ``image``; an integer factor is ``gsmsdr_ns.degrade.kernels.apply_mixres``. A fractional
+    factor (a known factor seen by a coarser render, e.g. 3 at 1/2 resolution) shrinks the same way (antialiased
+    bilinear to ``max(1, round(H / f)) x max(1, round(W / f))``), enlarges back with ``upsample`` and clamps to [0, 1].
     """
     if image.dim() != 4:
         raise ValueError(f"image must be [B, C, H, W], got {list(image.shape)}")
     if factor <= 1:
         return image
+    if float(factor).is_integer():
+        # imported here: the degrade package pulls in its CLI's dependencies (tyro), which blur/ does not need
+        from gsmsdr_ns.degrade.kernels import apply_mixres
+
+        return apply_mixres(image, int(factor), upsample)
     H, W = image.shape[-2:]
     small = (max(1, round(H / factor)), max(1, round(W / factor)))
     low = resize(image, small, interpolation="bilinear", antialias=True)
-    up = resize(low, (H, W), interpolation=upsample, align_corners=False)
-    return up.clamp(0.0, 1.0) if clamp else up
+    return resize(low, (H, W), interpolation=upsample, align_corners=False).clamp(0.0, 1.0)
 
 
 class ResolutionLossModel(nn.Module):
     """Known down-up operator plus a small learned residual kernel (identity at initialisation).
 
-    ``out = R_v * down_up(render, f_b)`` where ``*`` is a ``kernel_size`` x ``kernel_size`` convolution
+    ``out = R_v * resolution_loss(render, f_b)`` where ``*`` is a ``kernel_size`` x ``kernel_size`` convolution
     (replicate border) with ``R_v = delta + (W_v - mean(W_v))``: ``W_v`` is a learnable per-view table (or one
     global kernel with ``num_views=None``) initialised to zeros, so ``R_v`` always sums to 1 and starts as the exact
     identity. Images with an effective factor <= 1 pass through the residual only.
@@ -254,7 +261,7 @@ class ResolutionLossModel(nn.Module):
         rows = []
         for f in sorted(set(factors)):  # one resize per distinct factor
             idx = [i for i, g in enumerate(factors) if g == f]
-            rows.append((idx, down_up(render[idx], f, self.upsample)))
+            rows.append((idx, resolution_loss(render[idx], f, self.upsample)))
         order = [i for idx, _ in rows for i in idx]
         low = torch.cat([x for _, x in rows], dim=0)[torch.argsort(torch.tensor(order, device=render.device))]
         k = self.kernel_size
@@ -262,3 +269,56 @@ class ResolutionLossModel(nn.Module):
         padded = F.pad(low.reshape(1, B * C, H, W), [k // 2] * 4, mode="replicate")
         weight = kern.repeat_interleave(C, dim=0).reshape(B * C, 1, k, k)
         return F.conv2d(padded, weight, groups=B * C).reshape(B, C, H, W)
+
+
+# ------------------------------------------------------------------------------------------------ per training set
+
+
+def training_profiles(
+    mode: ProfileMode, metadata: Optional[Mapping[str, Any]], num_train: int
+) -> List[DegradationProfile]:
+    """One profile per training image.
+
+    Args:
+        mode: the model's ``degradation`` setting (``DegradationProfile.from_mode``): ``auto`` reads the records,
+            an image without a usable record is unknown (any blur, any resolution loss); the others force that
+            degradation on every training image the records do not call undegraded.
+        metadata: the training dataset's metadata (``DataparserOutputs.metadata``); its ``"degradations"`` list,
+            when present, must hold ``num_train`` records in the training split's order.
+        num_train: number of training images.
+
+    Raises:
+        ValueError: the records do not match the training images.
+    """
+    records: Optional[Sequence[Optional[Mapping[str, Any]]]] = None
+    if metadata is not None:
+        records = metadata.get("degradations")
+    if records is None:
+        records = [None] * num_train
+    if len(records) != num_train:
+        raise ValueError(
+            f"gsmsdr: the dataparser describes the degradation of {len(records)} training images, but there are "
+            f"{num_train}: metadata['degradations'] must hold one record per training image, in the split's order."
+        )
+    return [DegradationProfile.from_mode(mode, record) for record in records]
+
+
+def _profile_kind(profile: DegradationProfile) -> str:
+    if profile.is_sharp:
+        return "sharp"
+    if profile == DegradationProfile.unknown():
+        return "unknown"
+    parts = [name for name in ("motion", "defocus") if getattr(profile, name)]
+    if profile.mixres_factor is None:
+        parts.append("mixres x?")
+    elif profile.mixres_factor > 1:
+        parts.append(f"mixres x{profile.mixres_factor}")
+    if profile.noise:
+        parts.append("noise")
+    return "+".join(parts)
+
+
+def describe_profiles(profiles: Sequence[DegradationProfile]) -> str:
+    """Counts per kind, most common first, e.g. ``"6 motion, 2 sharp"``."""
+    counts = Counter(_profile_kind(p) for p in profiles)
+    return ", ".join(f"{n} {kind}" for kind, n in counts.most_common())

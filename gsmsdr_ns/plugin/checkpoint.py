@@ -1,7 +1,7 @@
 """Make nerfstudio checkpoints load under torch >= 2.6 (``torch.load(..., weights_only=True)`` by default).
 
-What a nerfstudio 1.1.5 checkpoint holds that the weights-only unpickler refuses (measured with
-``torch.serialization.get_unsafe_globals_in_checkpoint`` on a ``gsmsdr`` checkpoint): numpy float64 scalars.
+What a nerfstudio 1.1.5 checkpoint holds that the weights-only unpickler refuses (as
+``torch.serialization.get_unsafe_globals_in_checkpoint`` lists them for a ``gsmsdr`` checkpoint): numpy float64 scalars.
 nerfstudio's ``ExponentialDecayScheduler`` computes its learning-rate factor with ``np.exp`` / ``np.clip``, so
 ``LambdaLR`` writes ``numpy.float64`` values into every scheduled optimizer's ``param_groups[i]["lr"]`` and into
 the scheduler's ``_last_lr``.  Pickle stores such a scalar as a call to numpy's scalar reconstructor

@@ -6,8 +6,8 @@
 
 ``gsmsdr-lite``: the same model with the ``lite`` blur field (half the channels), SH degree 1, kernels 5 / 9 / 13,
 7000 steps with the resolution doubling every 1000 steps and densification until step 4000 (learning-rate
-schedules shortened to match). The lite field costs about half of the default one per step (200x150 on 2 CPU cores,
-full resolution: ~230 ms vs ~510 ms per blurred-image step; a sharp-image step is ~36 ms either way).
+schedules shortened to match). Its field has half the channels of the default one, so a blurred-image step costs
+less; a sharp-image step does not run the field in either preset.
 
 Runs on whatever device is there: ``machine.device_type`` defaults to CUDA when available, else CPU, so
 ``ns-train gsmsdr --data <scene>`` works on a CPU-only machine without extra flags.  Images are cached on the
@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import torch
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
-from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanagerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
@@ -27,6 +26,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
 from gsmsdr_ns.blur.field import BlurFieldConfig
 from gsmsdr_ns.plugin.auto_dataparser import GSMSDRAutoDataParserConfig
+from gsmsdr_ns.plugin.datamanager import GSMSDRDatamanagerConfig
 from gsmsdr_ns.plugin.model import GSMSDRModelConfig
 
 MAX_STEPS = 30000
@@ -52,9 +52,8 @@ def gsmsdr_optimizers(max_steps: int = MAX_STEPS) -> dict:
     resolution model's residual kernels (1e-4). Groups a scene does not build (a sharp scene has no blur field) are
     simply unused.
 
-    The field's rate is below BAGS' 5e-4: its per-pixel heads then follow the per-view kernels instead of racing them
-    (strong shake, 160x120, 1500 steps, full preset: 23.92 dB at 1e-4, 23.89 at 3e-5, 23.62 at 5e-4; gsmsdr-lite
-    23.90 against 23.66)."""
+    The field's rate is below BAGS' 5e-4 so that its per-pixel heads follow the per-view kernels instead of racing
+    them."""
     return {
         "means": {
             "optimizer": _adam(1.6e-4),
@@ -85,7 +84,7 @@ def _trainer_config(method_name: str, model: GSMSDRModelConfig, max_steps: int) 
         mixed_precision=False,
         machine=MachineConfig(device_type=default_device_type()),
         pipeline=VanillaPipelineConfig(
-            datamanager=FullImageDatamanagerConfig(
+            datamanager=GSMSDRDatamanagerConfig(
                 dataparser=GSMSDRAutoDataParserConfig(),
                 cache_images="gpu",
                 cache_images_type="uint8",

@@ -11,44 +11,39 @@ Differences from ``SplatfactoModel``, each kept as a small override that extends
 * a non-finite loss stops training with :class:`NonFiniteLossError` naming the step;
 * checkpoints resize the existing Gaussian parameters in place when loaded, so optimizers built before loading
   (``ns-train --load-dir``) keep updating the model's parameters;
-* GS-MSDR's degradation models, built only for the effects the scene calls for (one ``DegradationProfile`` per
-  training image, from the dataparser's ``metadata["degradations"]`` or the ``degradation`` mode): the blur field
-  (MAAN + HPKO) for blurred images, the resolution-loss model for images of known lower resolution, nothing for
-  sharp ones. While training, ``rgb`` is the render passed through the image's degradation model (what the loss
-  compares with the degraded photo) and ``rgb_sharp`` the render itself; at evaluation ``rgb`` is always the sharp
-  render, and the viewer can also show ``degraded``, ``kernel_size`` and ``blur_mask``.
+* GS-MSDR's degradation models live in ``degradation`` (:class:`~gsmsdr_ns.blur.degradation_model.DegradationModel`),
+  built only for the effects the scene calls for (one ``DegradationProfile`` per training image, from the
+  dataparser's ``metadata["degradations"]`` or the ``degradation`` mode): the blur field (MAAN + HPKO, thin lens)
+  for blurred images, the resolution-loss model for images of known lower resolution, nothing for sharp ones. Its
+  HPKO state advances in a training callback before each iteration. While training, ``rgb`` is the render passed
+  through the image's degradation model (what the loss compares with the degraded photo) and ``rgb_sharp`` the
+  render itself; at evaluation ``rgb`` is always the sharp render, and the viewer can also show ``degraded``,
+  ``kernel_size`` and ``blur_mask``;
+* the stages of a step are marked for ``gsmsdr_ns.timing_hooks`` (rasterization, densification; the degradation
+  model marks the blur field and kernel application): no-ops unless a timing recorder is attached.
 """
 
 from __future__ import annotations
 
 import contextlib
 import warnings
-from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, Iterator, List, Literal, Optional, Tuple, Type, Union
 from urllib.parse import urlparse
 
 import torch
-import torch.nn.functional as F
 from nerfstudio.cameras.cameras import Cameras
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
+from gsmsdr_ns.blur.degradation_model import DegradationModel, DegradationPlan, remap_legacy_keys
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.hpko import HPKOScheduler
-from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, effective_factor
-from gsmsdr_ns.plugin.degradation_plan import (
-    DegradationPlan,
-    coarsen_kernels,
-    describe_profiles,
-    kernel_spread,
-    nearest_view,
-    preview_downscale,
-    training_profiles,
-)
+from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, training_profiles
+from gsmsdr_ns.timing_hooks import stage, timed
 
 _lpips_warning_shown = False  # the "LPIPS disabled" warning is shown once per process, however many models are built
 
@@ -188,59 +183,44 @@ class GSMSDRModel(SplatfactoModel):
         self._populate_degradation_modules()
 
     def _populate_degradation_modules(self) -> None:
-        """One profile per training image, and only the degradation models those profiles need.
-
-        * ``blur_field`` (:class:`BlurField`, ``num_train_views`` rows of view embedding, depth input when some
-          image's blur depends on depth), its HPKO scheduler ``hpko`` with its running state ``hpko_state`` (a plain
-          dict, like ``strategy_state``) and ``train_camera_centres`` (persistent [N, 3] buffer: the viewer's
-          blur outputs use the view embedding of the nearest training camera): when some image is blurred or lost
-          resolution by an unknown factor;
-        * ``resolution_model`` (:class:`ResolutionLossModel`): when some image has a known resolution-loss factor > 1.
-
-        A sharp scene builds none of them and trains as plain splatfacto. They are initialised under
-        ``torch.random.fork_rng``: building them leaves the random stream that training draws from (random
-        backgrounds, densification) exactly as it would be without them.
-        """
-        metadata = self.kwargs.get("metadata")
-        self.profiles: List[DegradationProfile] = training_profiles(
-            self.config.degradation, metadata, self.num_train_data
+        """``degradation``: the :class:`DegradationModel` of the training images (one profile each, from the
+        dataparser's ``metadata["degradations"]`` and the ``degradation`` mode); a sharp scene gets one that builds
+        nothing and trains as plain splatfacto."""
+        profiles = training_profiles(self.config.degradation, self.kwargs.get("metadata"), self.num_train_data)
+        self.degradation = DegradationModel(
+            profiles,
+            self.config.blur_field,
+            num_downscales=self.config.num_downscales,
+            resolution_schedule=self.config.resolution_schedule,
+            resolution_kernel_size=self.config.resolution_kernel_size,
+            preview_max_side=self.config.viewer_blur_max_side,
         )
-        self.blur_field: Optional[BlurField] = None
-        self.hpko: Optional[HPKOScheduler] = None
-        self.hpko_state: Optional[Dict] = None
-        self.resolution_model: Optional[ResolutionLossModel] = None
-        if any(p.needs_blur_field for p in self.profiles):
-            use_depth = any(p.needs_depth for p in self.profiles)
-            field_config = self.config.blur_field.for_schedule(self.config.num_downscales)
-            with torch.random.fork_rng(devices=[]):
-                self.blur_field = field_config.setup(
-                    num_train_views=self.num_train_data,
-                    use_depth=use_depth,
-                    use_thin_lens=any(p.defocus for p in self.profiles),
-                )
-            self.hpko = field_config.make_scheduler(
-                num_downscales=self.config.num_downscales, resolution_schedule=self.config.resolution_schedule
-            )
-            self.hpko_state = self.hpko.initialize_state()
-            self.register_buffer("train_camera_centres", torch.full((self.num_train_data, 3), float("nan")))
-        mixres = [p for p in self.profiles if p.needs_resolution_model]
-        if mixres:
-            upsample = Counter(p.mixres_upsample for p in mixres).most_common(1)[0][0]
-            self.resolution_model = ResolutionLossModel(
-                num_views=self.num_train_data, kernel_size=self.config.resolution_kernel_size, upsample=upsample
-            )
         if self.num_train_data > 0:
-            CONSOLE.log(f"gsmsdr: training views: {describe_profiles(self.profiles)} -> {self._describe_modules()}")
+            CONSOLE.log(f"gsmsdr: training views: {self.degradation.describe_training_views()}")
+
+    # Read-only views of the degradation model's parts (tests, benchmarks and older call sites read them here).
+    @property
+    def profiles(self) -> List[DegradationProfile]:
+        return self.degradation.profiles
+
+    @property
+    def blur_field(self) -> Optional[BlurField]:
+        return self.degradation.blur_field
+
+    @property
+    def resolution_model(self) -> Optional[ResolutionLossModel]:
+        return self.degradation.resolution_model
+
+    @property
+    def hpko(self) -> Optional[HPKOScheduler]:
+        return self.degradation.hpko
+
+    @property
+    def hpko_state(self) -> Optional[Dict]:
+        return self.degradation.hpko_state
 
     def _describe_modules(self) -> str:
-        parts = []
-        if self.blur_field is not None:
-            depth = "RGB-D" if self.blur_field.uses_depth else "RGB"
-            lens = ", thin lens for defocus" if self.blur_field.thin_lens is not None else ""
-            parts.append(f"blur field ({self.config.blur_field.mode}, {depth}, kernels {self.hpko.kernel_sizes}{lens})")
-        if self.resolution_model is not None:
-            parts.append("resolution-loss model")
-        return " + ".join(parts) or "plain splatfacto (no degradation model)"
+        return self.degradation.describe()
 
     @staticmethod
     def _warn_lpips_disabled(lpips_path: Path) -> None:
@@ -298,15 +278,18 @@ class GSMSDRModel(SplatfactoModel):
     # -- checkpoints ----------------------------------------------------------------------------------------
 
     def update_to_step(self, step: int) -> None:
-        """Loading a checkpoint of step ``step``: render with the SH degree training had reached."""
+        """Loading a checkpoint of step ``step``: render with the SH degree and blur scale training had reached."""
         self.step = step
+        self.degradation.step(step)
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):  # type: ignore[override]
         """Resize the Gaussian parameters to the checkpoint's count *in place*, then load.
 
         splatfacto replaces the parameter objects here, which detaches them from optimizers created before loading
-        (trainer resume): those would keep stepping the stale tensors. Keeping the objects avoids that.
+        (trainer resume): those would keep stepping the stale tensors. Keeping the objects avoids that. Checkpoints
+        written before the degradation models moved into ``degradation`` load too (:func:`remap_legacy_keys`).
         """
+        state_dict = remap_legacy_keys(state_dict, "degradation.")
         count = state_dict["gauss_params.means"].shape[0]
         for param in self.gauss_params.values():
             param.data = param.data.new_zeros((count, *param.shape[1:]))
@@ -336,11 +319,14 @@ class GSMSDRModel(SplatfactoModel):
         plan = self._degradation_plan(camera, downscale)
         viewmats = viewmats_from_camera_to_worlds(self._camera_to_worlds(camera))
         with_depth = self.config.output_depth_during_training or not self.training or plan.needs_depth
-        render, alpha, self.info = self._rasterize(gaussians, viewmats, K, width, height, with_depth)
+        render, alpha, self.info = timed(
+            "rasterization", self._rasterize, gaussians, viewmats, K, width, height, with_depth
+        )
         if self.training:
-            self.strategy.step_pre_backward(
-                self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info
-            )
+            with stage("densification"):
+                self.strategy.step_pre_backward(
+                    self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info
+                )
 
         background = self._get_background_color()
         rgb = torch.clamp(render[..., :3] + (1.0 - alpha) * background, 0.0, 1.0)
@@ -356,178 +342,50 @@ class GSMSDRModel(SplatfactoModel):
             "background": background,
         }
         if not plan.is_plain:
-            outputs.update(self._simulate_degradation(outputs["rgb"], depth, plan))
+            outputs.update(self.degradation(outputs["rgb"], depth, plan))
         elif not self.training and self.config.viewer_blur_outputs and self.blur_field is not None:
-            outputs.update(self._blur_preview(camera, outputs["rgb"], depth))
+            centre = camera.camera_to_worlds.reshape(-1, 3, 4)[0, :3, 3]
+            outputs.update(self.degradation.preview(outputs["rgb"], depth, centre))
         return outputs
-
-    # -- degradation (training) -----------------------------------------------------------------------------
 
     def _degradation_plan(self, camera: Cameras, downscale: int) -> DegradationPlan:
-        """What to simulate for this training camera, by the profile of ``camera.metadata["cam_idx"]``.
-
-        Nothing at evaluation, for cameras outside the training set (no ``cam_idx``) and for sharp images. The
-        blur field runs once the HPKO scheduler is past its warm-up, at the scale of the *current* render downscale
-        (so it follows the resolution schedule; explicit ``blur_field.switch_steps`` take over when set); the
-        resolution model runs while the image's factor, relative to the current downscale, is still > 1.
-        """
+        """What to simulate for this camera (:meth:`DegradationModel.plan`): nothing at evaluation or for cameras
+        outside the training set (no ``cam_idx``)."""
         if not self.training or not camera.metadata or "cam_idx" not in camera.metadata:
             return DegradationPlan()
-        view_id = int(camera.metadata["cam_idx"])
-        profile = self.profiles[view_id]
-        if profile.is_sharp:
-            return DegradationPlan(view_id)
-        blur_scale = None
-        if profile.needs_blur_field and self.hpko is not None:
-            follow = None if self.hpko.switch_steps is not None else downscale
-            blur_scale = self.hpko.update(self.hpko_state, self.step, downscale=follow)
-        factor = 1.0
-        if profile.needs_resolution_model and self.resolution_model is not None:
-            factor = effective_factor(profile.mixres_factor, downscale)
-        thin_lens = profile.defocus and self.blur_field is not None and self.blur_field.thin_lens is not None
-        runs_field = not self._lens_alone(profile)
-        uses_depth = self.blur_field is not None and self.blur_field.uses_depth
-        return DegradationPlan(view_id, blur_scale, uses_depth, factor, thin_lens, downscale, runs_field)
-
-    def _lens_alone(self, profile: DegradationProfile) -> bool:
-        """Whether the thin lens alone models this image's blur (defocus only, a lens is built, and the config does
-        not ask for the field on defocus)."""
-        field = self.blur_field
-        return (
-            field is not None
-            and field.thin_lens is not None
-            and profile.defocus_only
-            and not field.config.defocus_field
-        )
-
-    def _simulate_degradation(
-        self, rgb: Tensor, depth: Optional[Tensor], plan: DegradationPlan
-    ) -> Dict[str, Tensor]:
-        """Pass the sharp render [H, W, 3] (and depth [H, W, 1]) through this image's degradation models, in the
-        order a camera degrades a photo: blur (blur field), then resolution loss (resolution model).
-
-        Returns ``rgb`` (the simulated degraded image), ``rgb_sharp`` and, when the blur field ran, ``blur_mask``.
-        """
-        image = rgb.permute(2, 0, 1)[None]  # [1, 3, H, W]
-        view_ids = torch.tensor([plan.view_id], device=image.device)
-        outputs: Dict[str, Tensor] = {"rgb_sharp": rgb}
-        if plan.blur_scale is not None:
-            assert self.blur_field is not None
-            linear_light = self.blur_field.config.linear_light
-            if plan.thin_lens:
-                assert self.blur_field.thin_lens is not None and depth is not None
-                lens = self.blur_field.thin_lens(
-                    depth.permute(2, 0, 1)[None], view_ids, plan.blur_scale.kernel_size, 1.0 / plan.render_downscale
-                )
-                image = BlurField.blur(image, lens, linear_light)
-            if plan.blur_field:
-                depth_in = depth.permute(2, 0, 1)[None] if plan.blur_uses_depth else None
-                kernels, mask = self.blur_field(image, depth_in, view_ids, plan.blur_scale.scale)
-                image = BlurField.degrade(image, kernels, mask, linear_light)
-                outputs["blur_mask"] = mask[0].permute(1, 2, 0)
-        if plan.resolution_factor > 1.0:
-            assert self.resolution_model is not None
-            image = self.resolution_model(image, [plan.resolution_factor], view_ids)
-        outputs["rgb"] = image[0].permute(1, 2, 0)
-        return outputs
-
-    # -- degradation (viewer) -------------------------------------------------------------------------------
-
-    def _blur_preview(self, camera: Cameras, rgb: Tensor, depth: Tensor) -> Dict[str, Tensor]:
-        """Viewer outputs of the blur field for an evaluation camera, as for the nearest training view (its
-        embedding and per-view kernels).
-
-        The field runs at the HPKO scale training uses at the model's step (``hpko.scale_for_step``), on the render
-        shrunk to that scale's resolution, or further (powers of two) until its longer side is at most
-        ``viewer_blur_max_side``; in that case the kernels are re-expressed on the coarser grid
-        (:func:`coarsen_kernels`) so the simulated blur keeps its extent. Results are enlarged back to the render's
-        size. ``degraded`` [H, W, 3] = mask * blurred + (1 - mask) * render; ``kernel_size`` [H, W, 1] = the
-        kernels' RMS blur radius in pixels of the render, times the mask (0 where the field keeps the render
-        sharp); ``blur_mask`` [H, W, 1]. When that training view is defocused, its thin lens blurs the render
-        first (``render`` above is then the lens's blur) and its RMS radius is added in quadrature; a view the lens
-        models alone (defocus only, see ``BlurFieldConfig.defocus_field``) shows the lens's blur, its RMS radius and
-        a mask of 1.
-        """
-        assert self.blur_field is not None and self.hpko is not None
-        height, width = rgb.shape[:2]
-        info = self.hpko.scale_for_step(self.step)
-        d = preview_downscale(height, width, self.config.viewer_blur_max_side, at_least=info.downsample)
-        small = (max(1, height // d), max(1, width // d))
-        image = rgb.permute(2, 0, 1)[None]  # [1, 3, H, W]
-        low = image if d == 1 else F.interpolate(image, size=small, mode="area")
-        centre = camera.camera_to_worlds.reshape(-1, 3, 4)[0, :3, 3]
-        view_id = nearest_view(self.train_camera_centres, centre)
-        view_ids = torch.tensor([view_id], device=image.device)
-        lens = self.blur_field.thin_lens if self.profiles[view_id].defocus else None
-        lens_alone = self._lens_alone(self.profiles[view_id])
-        field_depth = self.blur_field.uses_depth and not lens_alone
-        low_depth = None
-        if field_depth or lens is not None:
-            depth_in = depth.permute(2, 0, 1)[None]
-            low_depth = depth_in if d == 1 else F.interpolate(depth_in, size=small, mode="area")
-        linear_light = self.blur_field.config.linear_light
-
-        def enlarge(x: Tensor) -> Tensor:
-            return x if d == 1 else F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False)
-
-        if lens is not None:  # as in training: the lens first, then the field
-            window = (info.kernel_size * info.downsample // d) | 1  # the scale's window at the preview's grid, odd
-            lens_kernels = lens(low_depth, view_ids, window, 1.0 / d)
-            low = BlurField.blur(low, lens_kernels, linear_light)
-            if lens_alone:  # as in training: a defocus-only view is the lens's blur in full
-                return {
-                    "degraded": enlarge(low).clamp(0.0, 1.0)[0].permute(1, 2, 0),
-                    "kernel_size": enlarge(kernel_spread(lens_kernels) * d)[0].permute(1, 2, 0),
-                    "blur_mask": rgb.new_ones(height, width, 1),
-                }
-        kernels, mask = self.blur_field(low, low_depth if field_depth else None, view_ids, info.scale)
-        extent = kernel_spread(kernels) * info.downsample * mask  # kernel taps are pixels at the scale's resolution
-        if lens is not None:  # RMS radii of successive blurs add in quadrature
-            extent = torch.sqrt(extent**2 + (kernel_spread(lens_kernels) * d) ** 2)
-        coarse = coarsen_kernels(kernels, d // info.downsample)
-        blurred = BlurField.blur(low, coarse, linear_light)
-        mask_full = enlarge(mask)
-        base = image if lens is None else enlarge(low)  # what the field blends with: the render, or its lens blur
-        degraded = (mask_full * enlarge(blurred) + (1.0 - mask_full) * base).clamp(0.0, 1.0)
-        return {
-            "degraded": degraded[0].permute(1, 2, 0),
-            "kernel_size": enlarge(extent)[0].permute(1, 2, 0),
-            "blur_mask": mask_full[0].permute(1, 2, 0),
-        }
+        return self.degradation.plan(int(camera.metadata["cam_idx"]), downscale)
 
     # -- training callbacks ---------------------------------------------------------------------------------
 
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> List[TrainingCallback]:
-        """splatfacto's callbacks; also records the training camera centres for the viewer's blur outputs."""
+        """splatfacto's callbacks, then the degradation model's step (HPKO state) before each training iteration;
+        also records the training camera centres for the viewer's blur outputs."""
         pipeline = training_callback_attributes.pipeline
         datamanager = getattr(pipeline, "datamanager", None)
         dataset = getattr(datamanager, "train_dataset", None)
         if self.blur_field is not None and dataset is not None:
             self.set_train_camera_centres(dataset.cameras.camera_to_worlds)
-        return super().get_training_callbacks(training_callback_attributes)
+        callbacks = super().get_training_callbacks(training_callback_attributes)
+        callbacks.append(
+            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self.degradation.step)
+        )
+        return callbacks
 
-    @torch.no_grad()
+    def step_post_backward(self, step: int) -> None:
+        """splatfacto's densification after the backward pass, marked as the ``densification`` timing stage."""
+        with stage("densification"):
+            super().step_post_backward(step)
+
     def set_train_camera_centres(self, camera_to_worlds: Tensor) -> None:
         """Store the centres of the training cameras ([N, 3, 4] poses, the training split's order)."""
-        if self.blur_field is None:
-            return
-        centres = camera_to_worlds.reshape(-1, 3, 4)[:, :3, 3]
-        if centres.shape != self.train_camera_centres.shape:
-            raise ValueError(
-                f"expected {self.train_camera_centres.shape[0]} training camera poses, got {centres.shape[0]}"
-            )
-        self.train_camera_centres.copy_(centres)
+        self.degradation.set_train_camera_centres(camera_to_worlds)
 
     def get_param_groups(self) -> Dict[str, List[torch.nn.Parameter]]:
-        """splatfacto's groups, plus ``blur_field`` and ``resolution_model`` when those modules exist."""
-        groups = super().get_param_groups()
-        if self.blur_field is not None:
-            self.blur_field.get_param_groups(groups)
-        if self.resolution_model is not None:
-            groups["resolution_model"] = list(self.resolution_model.parameters())
-        return groups
+        """splatfacto's groups, plus the degradation model's (``blur_field``, ``blur_view_kernels``,
+        ``blur_defocus``, ``resolution_model``) for the modules that exist."""
+        return self.degradation.get_param_groups(super().get_param_groups())
 
     def _camera_to_worlds(self, camera: Cameras) -> Tensor:
         """[1, 3, 4] pose on the model's device, corrected by the camera optimizer while training."""
@@ -591,16 +449,15 @@ class GSMSDRModel(SplatfactoModel):
         """splatfacto's loss on ``rgb`` (the simulated degradation while training) plus the blur mask regulariser."""
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
         if self.training:
-            if self.blur_field is not None:
-                self.blur_field.get_loss_dict(loss_dict, outputs.get("blur_mask"))
+            self.degradation.get_loss_dict(loss_dict, outputs)
             self._check_finite(loss_dict)
         return loss_dict
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, Tensor]:
         """splatfacto's metrics; ``blur_kernel_size`` (the HPKO kernel size) on steps where the blur field ran."""
         metrics_dict = super().get_metrics_dict(outputs, batch)
-        if self.training and "blur_mask" in outputs and self.hpko_state is not None:
-            metrics_dict["blur_kernel_size"] = self.hpko_state["kernel_size"]
+        if self.training:
+            self.degradation.get_metrics_dict(metrics_dict, outputs)
         return metrics_dict
 
     def _check_finite(self, loss_dict: Dict[str, Tensor]) -> None:

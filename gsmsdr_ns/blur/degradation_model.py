@@ -1,0 +1,394 @@
+"""Everything that turns a sharp render into the degraded photo a training image is: :class:`DegradationModel`.
+
+It owns one :class:`~gsmsdr_ns.blur.profile.DegradationProfile` per training image and only the parts those
+profiles need: the blur field (MAAN + HPKO, with its thin lens for defocus) and its HPKO scheduler with the
+scheduler's running state, and the resolution-loss model. A sharp scene builds none of them. The nerfstudio model
+asks it, per training step, for a :class:`DegradationPlan` (:meth:`DegradationModel.plan`) and passes the render
+through it (:meth:`DegradationModel.forward`); the viewer's blur outputs come from :meth:`DegradationModel.preview`.
+Both run "the thin lens, then the field" through one method, :meth:`DegradationModel._lens_then_field`.
+
+Checkpoint keys: ``blur_field.*``, ``resolution_model.*`` and ``train_camera_centres`` under this module's prefix;
+:func:`remap_legacy_keys` moves the keys of checkpoints written before this module existed (the same names one
+level up) under it.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, OrderedDict
+from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
+from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo
+from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
+from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, describe_profiles, effective_factor
+from gsmsdr_ns.timing_hooks import timed
+
+__all__ = ["DegradationModel", "DegradationPlan", "LEGACY_KEY_PREFIXES", "remap_legacy_keys"]
+
+LEGACY_KEY_PREFIXES = ("blur_field.", "resolution_model.", "train_camera_centres")
+"""State-dict keys the degradation modules had when they were attributes of the nerfstudio model itself."""
+
+
+class DegradationPlan(NamedTuple):
+    """What one training step simulates on top of the sharp render (all empty: a plain splatfacto step)."""
+
+    view_id: Optional[int] = None
+    """Index of the training image (``camera.metadata["cam_idx"]``); None for cameras outside the training set."""
+    blur_scale: Optional[ScaleInfo] = None
+    """HPKO scale the blur field runs at; None: the field is not evaluated."""
+    blur_uses_depth: bool = False
+    """The blur field reads the rendered depth (the rasterizer must produce it)."""
+    resolution_factor: float = 1.0
+    """Effective resolution-loss factor at the current render downscale; > 1: the resolution model runs."""
+    thin_lens: bool = False
+    """The image may be defocused: the blur field's thin lens blurs the render first (needs depth)."""
+    render_downscale: int = 1
+    """The render's downscale factor (the thin lens's aperture is in full-resolution pixels)."""
+    blur_field: bool = True
+    """The field's kernels run (after the lens, if any); False: a defocused image is modelled by the thin lens
+    alone."""
+
+    @property
+    def needs_depth(self) -> bool:
+        return self.blur_scale is not None and ((self.blur_uses_depth and self.blur_field) or self.thin_lens)
+
+    @property
+    def is_plain(self) -> bool:
+        """Nothing to simulate: outputs["rgb"] is the sharp render."""
+        return self.blur_scale is None and self.resolution_factor <= 1.0
+
+
+class LensThenField(NamedTuple):
+    """The blur stages of one image: the lens's kernels (None: no lens), the image after the lens, and the field's
+    kernels and mask for that image (None: the field did not run)."""
+
+    lens_kernels: Optional[Tensor]
+    image: Tensor
+    kernels: Optional[Tensor]
+    mask: Optional[Tensor]
+
+
+def remap_legacy_keys(state_dict: Mapping[str, Any], prefix: str) -> Mapping[str, Any]:
+    """A checkpoint written before :class:`DegradationModel` existed (keys ``blur_field.*``, ``resolution_model.*``,
+    ``train_camera_centres`` one level up) with those keys moved under ``prefix`` (e.g. ``"degradation."``);
+    ``state_dict`` itself when it has none. The new dict keeps torch's ``_metadata`` (module versions), remapped."""
+    if not any(key.startswith(LEGACY_KEY_PREFIXES) for key in state_dict):
+        return state_dict
+    legacy = tuple(p.rstrip(".") for p in LEGACY_KEY_PREFIXES)
+
+    def moved(key: str) -> str:
+        return prefix + key if key.startswith(legacy) else key
+
+    out: Any = OrderedDict((moved(key), value) for key, value in state_dict.items())
+    metadata = getattr(state_dict, "_metadata", None)
+    if metadata is not None:
+        out._metadata = OrderedDict((moved(key), value) for key, value in metadata.items())
+    return out
+
+
+def _bchw(x: Tensor) -> Tensor:
+    """[H, W, C] -> [1, C, H, W]"""
+    return x.permute(2, 0, 1)[None]
+
+
+def _hwc(x: Tensor) -> Tensor:
+    """[1, C, H, W] -> [H, W, C]"""
+    return x[0].permute(1, 2, 0)
+
+
+class DegradationModel(nn.Module):
+    """The degradation models of a set of training images, built only for the effects their profiles call for.
+
+    Args:
+        profiles: one per training image, in the training split's order.
+        field_config: the blur field's config (restricted to the scales ``num_downscales`` visits).
+        num_downscales: splatfacto's ``num_downscales`` (training starts at 1 / 2^num_downscales).
+        resolution_schedule: splatfacto's ``resolution_schedule`` (steps between resolution doublings).
+        resolution_kernel_size: size of the resolution-loss model's residual kernel.
+        preview_max_side: the viewer outputs' working resolution (see :meth:`preview`; 0: full resolution).
+
+    Attributes (None when no image needs them): ``blur_field`` (:class:`BlurField`), ``hpko``
+    (:class:`HPKOScheduler`), ``hpko_state`` (its running state, a plain dict advanced by :meth:`step`),
+    ``train_camera_centres`` (persistent [N, 3] buffer, NaN until :meth:`set_train_camera_centres`: the viewer
+    outputs use the nearest training view), ``resolution_model`` (:class:`ResolutionLossModel`). The blur field is
+    initialised under ``torch.random.fork_rng``: building it leaves the random stream training draws from as it
+    would be without it.
+    """
+
+    def __init__(
+        self,
+        profiles: Sequence[DegradationProfile],
+        field_config: BlurFieldConfig,
+        num_downscales: int = 2,
+        resolution_schedule: int = 3000,
+        resolution_kernel_size: int = 3,
+        preview_max_side: int = 128,
+    ) -> None:
+        super().__init__()
+        self.profiles: List[DegradationProfile] = list(profiles)
+        self.preview_max_side = int(preview_max_side)
+        self.current_step = 0
+        self.blur_field: Optional[BlurField] = None
+        self.hpko: Optional[HPKOScheduler] = None
+        self.hpko_state: Optional[Dict[str, Any]] = None
+        self.resolution_model: Optional[ResolutionLossModel] = None
+        num_views = len(self.profiles)
+        if any(p.needs_blur_field for p in self.profiles):
+            field_config = field_config.for_schedule(num_downscales)
+            with torch.random.fork_rng(devices=[]):
+                self.blur_field = field_config.setup(
+                    num_train_views=num_views,
+                    use_depth=any(p.needs_depth for p in self.profiles),
+                    use_thin_lens=any(p.defocus for p in self.profiles),
+                )
+            self.hpko = field_config.make_scheduler(
+                num_downscales=num_downscales, resolution_schedule=resolution_schedule
+            )
+            self.hpko_state = self.hpko.initialize_state()
+            self.register_buffer("train_camera_centres", torch.full((num_views, 3), float("nan")))
+        mixres = [p for p in self.profiles if p.needs_resolution_model]
+        if mixres:
+            upsample = Counter(p.mixres_upsample for p in mixres).most_common(1)[0][0]
+            self.resolution_model = ResolutionLossModel(
+                num_views=num_views, kernel_size=resolution_kernel_size, upsample=upsample
+            )
+
+    # -- description and state ------------------------------------------------------------------------------
+
+    def describe(self) -> str:
+        """One line for the log: what the training images are and which models that builds."""
+        parts = []
+        if self.blur_field is not None:
+            assert self.hpko is not None
+            depth = "RGB-D" if self.blur_field.uses_depth else "RGB"
+            lens = ", thin lens for defocus" if self.blur_field.thin_lens is not None else ""
+            parts.append(f"blur field ({self.blur_field.config.mode}, {depth}, kernels {self.hpko.kernel_sizes}{lens})")
+        if self.resolution_model is not None:
+            parts.append("resolution-loss model")
+        return " + ".join(parts) or "plain splatfacto (no degradation model)"
+
+    def describe_training_views(self) -> str:
+        """``"<profile counts> -> <models>"``, e.g. ``"6 motion, 2 sharp -> blur field (...)"``."""
+        return f"{describe_profiles(self.profiles)} -> {self.describe()}"
+
+    def step(self, step: int) -> None:
+        """A training step begins: the HPKO state (scale in use, step each scale was first used at) moves to it."""
+        self.current_step = int(step)
+        if self.hpko is not None:
+            assert self.hpko_state is not None
+            self.hpko.update(self.hpko_state, self.current_step)
+
+    @torch.no_grad()
+    def set_train_camera_centres(self, camera_to_worlds: Tensor) -> None:
+        """Store the centres of the training cameras ([N, 3, 4] poses, the training split's order)."""
+        if self.blur_field is None:
+            return
+        centres = camera_to_worlds.reshape(-1, 3, 4)[:, :3, 3]
+        if centres.shape != self.train_camera_centres.shape:
+            raise ValueError(
+                f"expected {self.train_camera_centres.shape[0]} training camera poses, got {centres.shape[0]}"
+            )
+        self.train_camera_centres.copy_(centres)
+
+    # -- nerfstudio-style shared-dict hooks -----------------------------------------------------------------
+
+    def get_param_groups(self, groups: Dict[str, List[nn.Parameter]]) -> Dict[str, List[nn.Parameter]]:
+        """Add ``blur_field`` / ``blur_view_kernels`` / ``blur_defocus`` (see ``BlurField.get_param_groups``) and
+        ``resolution_model`` for the modules that exist."""
+        if self.blur_field is not None:
+            self.blur_field.get_param_groups(groups)
+        if self.resolution_model is not None:
+            groups["resolution_model"] = list(self.resolution_model.parameters())
+        return groups
+
+    def get_loss_dict(self, loss_dict: Dict[str, Tensor], outputs: Dict[str, Any]) -> Dict[str, Tensor]:
+        """Add the blur mask regulariser ``blur_mask_reg`` when the field ran (``outputs["blur_mask"]``)."""
+        if self.blur_field is not None:
+            self.blur_field.get_loss_dict(loss_dict, outputs.get("blur_mask"))
+        return loss_dict
+
+    def get_metrics_dict(self, metrics_dict: Dict[str, Any], outputs: Dict[str, Any]) -> Dict[str, Any]:
+        """Add ``blur_kernel_size`` (the HPKO kernel size in use) when the field ran."""
+        if "blur_mask" in outputs and self.hpko_state is not None:
+            metrics_dict["blur_kernel_size"] = self.hpko_state["kernel_size"]
+        return metrics_dict
+
+    # -- training -------------------------------------------------------------------------------------------
+
+    def lens_alone(self, view_id: int) -> bool:
+        """Whether the thin lens alone models this image's blur (defocus only, a lens is built, and the field's
+        config does not ask for the field on defocus)."""
+        field = self.blur_field
+        return (
+            field is not None
+            and field.thin_lens is not None
+            and self.profiles[view_id].defocus_only
+            and not field.config.defocus_field
+        )
+
+    def plan(self, view_id: Optional[int], render_downscale: int) -> DegradationPlan:
+        """What to simulate for training image ``view_id`` (None: a camera outside the training set) rendered at
+        1 / ``render_downscale``, at the step given to :meth:`step`.
+
+        Nothing for sharp images. The blur field runs once the HPKO scheduler is past its warm-up, at the scale of
+        ``render_downscale`` (so it follows the resolution schedule; explicit ``switch_steps`` take over when set);
+        the resolution model runs while the image's factor, relative to ``render_downscale``, is still > 1.
+        """
+        if view_id is None:
+            return DegradationPlan()
+        profile = self.profiles[view_id]
+        if profile.is_sharp:
+            return DegradationPlan(view_id)
+        blur_scale = None
+        if profile.needs_blur_field and self.hpko is not None and self.hpko.is_active(self.current_step):
+            if self.hpko.switch_steps is None:
+                blur_scale = self.hpko.scale_for_downscale(render_downscale)
+            else:
+                blur_scale = self.hpko.scale_for_step(self.current_step)
+        factor = 1.0
+        if profile.needs_resolution_model and self.resolution_model is not None:
+            factor = effective_factor(profile.mixres_factor, render_downscale)
+        field = self.blur_field
+        thin_lens = profile.defocus and field is not None and field.thin_lens is not None
+        uses_depth = field is not None and field.uses_depth
+        return DegradationPlan(
+            view_id, blur_scale, uses_depth, factor, thin_lens, render_downscale, not self.lens_alone(view_id)
+        )
+
+    def forward(self, rgb: Tensor, depth: Optional[Tensor], plan: DegradationPlan) -> Dict[str, Tensor]:
+        """Pass the sharp render through this image's degradation models, in the order a camera degrades a photo:
+        blur (thin lens, then blur field), then resolution loss (resolution model).
+
+        Args:
+            rgb: [H, W, 3] sharp render.
+            depth: [H, W, 1] expected depth, or None when the plan does not need it.
+            plan: from :meth:`plan`.
+        Returns:
+            ``rgb`` [H, W, 3] (the simulated degraded image), ``rgb_sharp`` (the input) and, when the blur field
+            ran, ``blur_mask`` [H, W, 1].
+        """
+        image = _bchw(rgb)
+        view_ids = torch.tensor([plan.view_id], device=image.device)
+        outputs: Dict[str, Tensor] = {"rgb_sharp": rgb}
+        if plan.blur_scale is not None:
+            assert self.blur_field is not None
+            stages = self._lens_then_field(
+                image,
+                None if depth is None else _bchw(depth),
+                view_ids,
+                plan.blur_scale.scale,
+                lens_window=plan.blur_scale.kernel_size,
+                lens_pixel_scale=1.0 / plan.render_downscale,
+                lens=plan.thin_lens,
+                field=plan.blur_field,
+                field_depth=plan.blur_uses_depth,
+            )
+            image = stages.image
+            if stages.kernels is not None:
+                assert stages.mask is not None
+                blurred = timed("kernels", BlurField.blur, image, stages.kernels, self.blur_field.config.linear_light)
+                image = stages.mask * blurred + (1.0 - stages.mask) * image  # BlurField.degrade
+                outputs["blur_mask"] = _hwc(stages.mask)
+        if plan.resolution_factor > 1.0:
+            assert self.resolution_model is not None
+            image = timed("kernels", self.resolution_model, image, [plan.resolution_factor], view_ids)
+        outputs["rgb"] = _hwc(image)
+        return outputs
+
+    def _lens_then_field(
+        self,
+        image: Tensor,
+        depth: Optional[Tensor],
+        view_ids: Tensor,
+        scale: int,
+        lens_window: int,
+        lens_pixel_scale: float,
+        lens: bool,
+        field: bool,
+        field_depth: bool,
+    ) -> LensThenField:
+        """The blur of a training view as a camera makes it: its thin lens first (``lens``: disk kernels from
+        ``depth`` in a ``lens_window`` window, aperture scaled by ``lens_pixel_scale`` from full-resolution pixels),
+        then the field's kernels and mask on the lens's result (``field``; it reads ``depth`` when
+        ``field_depth``). image [1, 3, H, W], depth [1, 1, H, W] or None, view_ids [1]."""
+        assert self.blur_field is not None
+        lens_kernels = None
+        if lens:
+            assert self.blur_field.thin_lens is not None and depth is not None
+            thin_lens = self.blur_field.thin_lens
+            lens_kernels = timed("blur_field", thin_lens, depth, view_ids, lens_window, lens_pixel_scale)
+            image = timed("kernels", BlurField.blur, image, lens_kernels, self.blur_field.config.linear_light)
+        kernels = mask = None
+        if field:
+            kernels, mask = timed("blur_field", self.blur_field, image, depth if field_depth else None, view_ids, scale)
+        return LensThenField(lens_kernels, image, kernels, mask)
+
+    # -- viewer ---------------------------------------------------------------------------------------------
+
+    def preview(self, rgb: Tensor, depth: Optional[Tensor], camera_centre: Tensor) -> Dict[str, Tensor]:
+        """Viewer outputs of the blur field for an evaluation camera, as for the nearest training view (its
+        embedding and per-view kernels).
+
+        The field runs at the HPKO scale training uses at the current step (``hpko.scale_for_step``), on the
+        render shrunk to that scale's resolution, or further (powers of two) until its longer side is at most
+        ``preview_max_side``; in that case the kernels are re-expressed on the coarser grid (:func:`coarsen_kernels`)
+        so the simulated blur keeps its extent. Results are enlarged back to the render's size. ``degraded``
+        [H, W, 3] = mask * blurred + (1 - mask) * render; ``kernel_size`` [H, W, 1] = the kernels' RMS blur radius
+        in pixels of the render, times the mask (0 where the field keeps the render sharp); ``blur_mask``
+        [H, W, 1]. When that training view is defocused, its thin lens blurs the render first (``render`` above is
+        then the lens's blur) and its RMS radius is added in quadrature; a view the lens models alone shows the
+        lens's blur, its RMS radius and a mask of 1.
+
+        Args:
+            rgb: [H, W, 3] sharp render.
+            depth: [H, W, 1] expected depth (read when the field or the lens needs it).
+            camera_centre: [3] position of the evaluation camera.
+        """
+        assert self.blur_field is not None and self.hpko is not None
+        height, width = rgb.shape[:2]
+        info = self.hpko.scale_for_step(self.current_step)
+        d = preview_downscale(height, width, self.preview_max_side, at_least=info.downsample)
+        small = (max(1, height // d), max(1, width // d))
+        image = _bchw(rgb)
+        low = image if d == 1 else F.interpolate(image, size=small, mode="area")
+        view_id = nearest_view(self.train_camera_centres, camera_centre)
+        view_ids = torch.tensor([view_id], device=image.device)
+        lens = self.profiles[view_id].defocus and self.blur_field.thin_lens is not None
+        lens_alone = self.lens_alone(view_id)
+        field_depth = self.blur_field.uses_depth and not lens_alone
+        low_depth = None
+        if field_depth or lens:
+            assert depth is not None
+            depth_in = _bchw(depth)
+            low_depth = depth_in if d == 1 else F.interpolate(depth_in, size=small, mode="area")
+
+        def enlarge(x: Tensor) -> Tensor:
+            return x if d == 1 else F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False)
+
+        window = (info.kernel_size * info.downsample // d) | 1  # the scale's window at the preview's grid, odd
+        stages = self._lens_then_field(
+            low, low_depth, view_ids, info.scale, window, 1.0 / d, lens=lens, field=not lens_alone,
+            field_depth=field_depth,
+        )  # fmt: skip
+        lens_extent = None if stages.lens_kernels is None else kernel_spread(stages.lens_kernels) * d
+        if stages.kernels is None:  # as in training: a defocus-only view is the lens's blur in full
+            assert lens_extent is not None
+            return {
+                "degraded": _hwc(enlarge(stages.image).clamp(0.0, 1.0)),
+                "kernel_size": _hwc(enlarge(lens_extent)),
+                "blur_mask": rgb.new_ones(height, width, 1),
+            }
+        assert stages.mask is not None
+        extent = kernel_spread(stages.kernels) * info.downsample * stages.mask  # taps are pixels at the scale's grid
+        if lens_extent is not None:  # RMS radii of successive blurs add in quadrature
+            extent = torch.sqrt(extent**2 + lens_extent**2)
+        coarse = coarsen_kernels(stages.kernels, d // info.downsample)
+        blurred = BlurField.blur(stages.image, coarse, self.blur_field.config.linear_light)
+        mask_full = enlarge(stages.mask)
+        base = image if not lens else enlarge(stages.image)  # what the field blends with: the render or its lens blur
+        degraded = (mask_full * enlarge(blurred) + (1.0 - mask_full) * base).clamp(0.0, 1.0)
+        return {"degraded": _hwc(degraded), "kernel_size": _hwc(enlarge(extent)), "blur_mask": _hwc(mask_full)}
