@@ -35,6 +35,8 @@ def scaled(seconds: float) -> float:
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list) -> None:
     """Give ``slow`` tests ``SLOW_TIMEOUT_S`` and scale every test's pytest-timeout limit by the timeout scale."""
+    if not config.pluginmanager.hasplugin("timeout"):  # -p no:timeout
+        return
     from pytest_timeout import get_env_settings
 
     default = get_env_settings(config).timeout or 0.0  # --timeout, PYTEST_TIMEOUT or the ini file; 0: none
