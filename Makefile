@@ -10,7 +10,7 @@ VENV_PYTHON := $(VENV)/bin/python
 STAMP := $(VENV)/.gsmsdr-installed
 PYTEST := $(VENV_PYTHON) -m pytest -q -p no:cacheprovider
 
-.PHONY: venv demo test test-slow clean-venv
+.PHONY: venv demo test test-slow test-all clean-venv
 
 venv: $(STAMP)
 
@@ -22,11 +22,16 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV_PYTHON) -m gsmsdr_ns.demo
 
+# test: the default suite (pyproject's addopts deselect `slow`); test-slow: long trainings and end-to-end accuracy
+# runs only; test-all: both. A slow or heavily shared machine: GSMSDR_TEST_TIMEOUT_SCALE=3 make test (hang guards).
 test: $(STAMP)
 	$(PYTEST)
 
 test-slow: $(STAMP)
 	$(PYTEST) -m slow
+
+test-all: $(STAMP)
+	$(PYTEST) -m 'slow or not slow'
 
 clean-venv:
 	rm -rf $(VENV)

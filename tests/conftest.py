@@ -1,7 +1,12 @@
-"""Shared session fixtures: a tiny generated scene and one short real ``ns-train gsmsdr`` run on it.
+"""Shared session fixtures: a tiny generated scene and one short real ``ns-train gsmsdr`` run on it, and the
+suite's hang guards.
 
-Kept small on purpose. ``trained_run`` is trained once per session (10-30 s on 2 CPU cores) and reused by
-the plugin tests (ns-eval, resume) and the viewer tests; treat its directory as read-only.
+Kept small on purpose. ``trained_run`` is trained once per session and reused by the plugin tests (ns-eval,
+resume) and the viewer tests; treat its directory as read-only.
+
+Hang guards, not speed checks: pytest-timeout's per-test limit (``[tool.pytest.ini_options]``, ``slow`` tests get
+``SLOW_TIMEOUT_S``), subprocess timeouts and server waits are all far above a normal run and all multiplied by the
+``GSMSDR_TEST_TIMEOUT_SCALE`` environment variable (default 1) for a slow or heavily shared machine.
 """
 
 from __future__ import annotations
@@ -14,6 +19,36 @@ from pathlib import Path
 from typing import Sequence
 
 import pytest
+
+TIMEOUT_SCALE = float(os.environ.get("GSMSDR_TEST_TIMEOUT_SCALE", "1"))
+"""Multiplies every hang guard of the suite (pytest-timeout limits, subprocess timeouts, server waits)."""
+
+SLOW_TIMEOUT_S = 3600.0
+"""pytest-timeout's limit (before scaling) for ``slow`` tests without their own ``timeout`` mark; the fixture
+setup counts towards it, and the slow fixtures train for minutes."""
+
+
+def scaled(seconds: float) -> float:
+    """A hang guard of ``seconds`` multiplied by ``GSMSDR_TEST_TIMEOUT_SCALE``."""
+    return seconds * TIMEOUT_SCALE
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list) -> None:
+    """Give ``slow`` tests ``SLOW_TIMEOUT_S`` and scale every test's pytest-timeout limit by the timeout scale."""
+    if not config.pluginmanager.hasplugin("timeout"):  # -p no:timeout
+        return
+    from pytest_timeout import get_env_settings
+
+    default = get_env_settings(config).timeout or 0.0  # --timeout, PYTEST_TIMEOUT or the ini file; 0: none
+    for item in items:
+        marker = item.get_closest_marker("timeout")
+        args, kwargs = (marker.args, dict(marker.kwargs)) if marker is not None else ((), {})
+        base = kwargs.pop("timeout", args[0] if args else None)
+        if base is None:
+            base = SLOW_TIMEOUT_S if item.get_closest_marker("slow") is not None else default
+        if base:  # the closest mark wins: prepend the scaled one
+            item.add_marker(pytest.mark.timeout(scaled(float(base)), *args[1:], **kwargs), append=False)
+
 
 BIN = Path(sys.executable).parent  # the venv running the tests also holds ns-train / ns-eval / ns-viewer
 
@@ -44,7 +79,8 @@ class TrainedRun:
 
 
 def run_cli(tool: str, args: Sequence[str], cwd: Path, timeout: float = 600) -> subprocess.CompletedProcess:
-    """Run a console script of this venv (``ns-train``, ``ns-eval``, ...) and capture its output as text."""
+    """Run a console script of this venv (``ns-train``, ``ns-eval``, ...) and capture its output as text.
+    ``timeout``: a hang guard in seconds, multiplied by ``GSMSDR_TEST_TIMEOUT_SCALE``."""
     env = dict(os.environ, PYTHONUNBUFFERED="1", COLUMNS="200")
     return subprocess.run(
         [str(BIN / tool), *map(str, args)],
@@ -52,7 +88,7 @@ def run_cli(tool: str, args: Sequence[str], cwd: Path, timeout: float = 600) -> 
         env=env,
         capture_output=True,
         text=True,
-        timeout=timeout,
+        timeout=scaled(timeout),
     )
 
 
