@@ -13,8 +13,8 @@ import skimage.data
 import torch
 
 from gsmsdr_ns.data.degradation import load_degradation_json, match_entries, record_from_entry
-from gsmsdr_ns.data.errors import GSMSDRDataError
-from gsmsdr_ns.data.images import write_image
+from gsmsdr_ns.io.errors import InputError
+from gsmsdr_ns.io.images import write_image
 from gsmsdr_ns.degrade.kernels import apply_mixres, convolve_psf, disk_blur, motion_kernel_from_trajectory
 from gsmsdr_ns.estimate import EstimateConfig, estimate_degradations
 from gsmsdr_ns.estimate.cli import parse
@@ -148,7 +148,7 @@ def test_cli_leaves_nothing_half_written_on_a_bad_image(capture, tmp_path):
     before = json.dumps({"version": 1, "images": {"view_00.png": {"degraded": False, "effects": {}}}})
     (scene / "degradation.json").write_text(before, encoding="utf8")
     (scene / "images" / "view_05.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
-    with pytest.raises(GSMSDRDataError, match="view_05.png"):
+    with pytest.raises(InputError, match="view_05.png"):
         parse(["--scene", str(scene)]).main()
     assert (scene / "degradation.json").read_text(encoding="utf8") == before
     assert sorted(p.name for p in scene.iterdir()) == ["degradation.json", "images"]
@@ -157,14 +157,14 @@ def test_cli_leaves_nothing_half_written_on_a_bad_image(capture, tmp_path):
 def test_cli_refuses_an_unreadable_degradation_json(capture, tmp_path):
     scene = _copy_scene(capture[0], tmp_path / "scene")
     (scene / "degradation.json").write_text("{not json", encoding="utf8")
-    with pytest.raises(GSMSDRDataError, match="degradation.json"):
+    with pytest.raises(InputError, match="degradation.json"):
         parse(["--scene", str(scene)]).main()
     assert (scene / "degradation.json").read_text(encoding="utf8") == "{not json"
 
 
 def test_empty_folder_and_missing_arguments_give_clear_errors(tmp_path):
     (tmp_path / "images").mkdir()
-    with pytest.raises(GSMSDRDataError, match=f"no images in '{tmp_path / 'images'}'"):
+    with pytest.raises(InputError, match=f"no images in '{tmp_path / 'images'}'"):
         parse(["--images", str(tmp_path / "images")]).main()
     with pytest.raises(ValueError, match="exactly one of --scene"):
         parse([]).main()

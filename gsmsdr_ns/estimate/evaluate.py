@@ -27,7 +27,7 @@ import numpy as np
 import tyro
 
 from ..data.cameras import llff_to_opencv
-from ..data.images import list_images, read_image
+from ..io.images import list_images, read_image
 from ..degrade.variants import BUILTIN_PRESETS, VARIANTS
 from .classify import EstimateConfig, estimate_degradations
 

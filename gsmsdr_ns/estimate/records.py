@@ -16,15 +16,14 @@ Users may edit them; an entry without ``"source": "estimated"`` is a true record
 from __future__ import annotations
 
 import json
-import os
-import secrets
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence
 
 from .. import __version__
 from ..data.degradation import load_degradation_json
-from ..data.errors import GSMSDRDataError
-from ..data.images import list_images, read_image
+from ..io.atomic import write_json_atomic
+from ..io.errors import InputError
+from ..io.images import list_images, read_image
 from .classify import DegradationEstimate, EstimateConfig, estimate_degradations
 
 ESTIMATED = "estimated"
@@ -61,12 +60,12 @@ def is_estimated(entry: Any) -> bool:
 def read_folder(folder: Path, names: Optional[Sequence[str]] = None) -> tuple[List[str], list]:
     """(names, images [H, W, C] uint8) of the image files of folder (all of them, sorted, if names is None).
 
-    An empty folder or an unreadable image is a :class:`GSMSDRDataError` naming the folder or file.
+    An empty folder or an unreadable image is a :class:`InputError` naming the folder or file.
     """
     folder = Path(folder)
     names = list(names) if names is not None else list_images(folder)
     if not names:
-        raise GSMSDRDataError(
+        raise InputError(
             f"gsmsdr: no images in '{folder}' (looked for .png, .jpg, .jpeg, .bmp, .tif, .tiff, .webp). Point "
             "--images at the folder that holds the photos, or --scene at the scene that has an images/ folder."
         )
@@ -114,20 +113,6 @@ def _config_dict(config: EstimateConfig) -> Dict[str, Any]:
     from dataclasses import asdict
 
     return asdict(config)
-
-
-def write_json_atomic(path: Path, doc: Dict[str, Any]) -> None:
-    """Write doc as JSON to a temp file beside path, then rename it into place (never half-written)."""
-    path = Path(path)
-    tmp = path.parent / f".{path.name}.partial-{os.getpid()}-{secrets.token_hex(4)}"
-    try:
-        with open(tmp, "w", encoding="utf8") as f:
-            json.dump(doc, f, indent=1)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def write_scene_estimate(
@@ -209,7 +194,6 @@ __all__ = [
     "read_folder",
     "estimate_entries",
     "merge_entries",
-    "write_json_atomic",
     "write_scene_estimate",
     "estimate_scene_records",
 ]
