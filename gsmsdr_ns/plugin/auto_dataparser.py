@@ -6,19 +6,27 @@ the COLMAP reader; ``poses_bounds.npy`` alone -> ``deblur-nerf-data``); the choi
 one line, once per parser. Each reader keeps its own nested options (``--pipeline.datamanager.dataparser.deblur.*``,
 ``.colmap.*``, ``.nerfstudio.*``); their ``data`` is replaced by this parser's. Naming a dataparser on the
 command line (``ns-train gsmsdr ... deblur-nerf-data``) bypasses the detection altogether.
+
+Training images without a degradation record (a COLMAP or transforms.json scene, or a Deblur-NeRF scene without
+``degradation.json``) get an estimated record (``gsmsdr_ns.estimate``: sharp / motion / defocus / lower resolution,
+judged against the other photos of the scene, cached in ``<scene>/degradation.estimated.json``), so sharp photos
+train as plain splatfacto steps and only degraded ones pay for a degradation model; images the estimate cannot
+decide stay unknown. ``--pipeline.datamanager.dataparser.estimate-degradations False`` keeps them all unknown.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Type
+from typing import Any, Dict, List, Optional, Type
 
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from gsmsdr_ns.data.degradation import record_from_entry, unknown_record
 from gsmsdr_ns.data.layout import LayoutChoice, detect_layout
 from gsmsdr_ns.plugin.dataparser import GSMSDRDataParserConfig
 from gsmsdr_ns.plugin.deblur_dataparser import DeblurNerfDataParserConfig
@@ -37,6 +45,8 @@ class GSMSDRAutoDataParserConfig(DataParserConfig):
     """Options of the COLMAP reader, used for COLMAP / Mip-NeRF 360 scenes (its colmap_path is detected)."""
     nerfstudio: NerfstudioDataParserConfig = field(default_factory=NerfstudioDataParserConfig)
     """Options of nerfstudio's reader, used for transforms.json scenes."""
+    estimate_degradations: bool = True
+    """Estimate a degradation record for each training image that has none (cached next to the images' folder)."""
 
 
 class GSMSDRAutoDataParser(DataParser):
@@ -71,4 +81,48 @@ class GSMSDRAutoDataParser(DataParser):
         return self._delegate
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
-        return self.delegate.get_dataparser_outputs(split=split, **kwargs)
+        outputs = self.delegate.get_dataparser_outputs(split=split, **kwargs)
+        if split == "train" and self.config.estimate_degradations:
+            records = outputs.metadata.get("degradations")
+            if records is None:
+                records = [unknown_record(Path(f).name, "train") for f in outputs.image_filenames]
+            if any(r["degraded"] is None for r in records):
+                outputs.metadata["degradations"] = estimated_records(outputs.image_filenames, records)
+        return outputs
+
+
+def estimated_records(image_filenames: List[Path], records: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
+    """``records`` with every unknown one (``degraded`` None) replaced by the estimate of its image.
+
+    The estimate judges each photo against the others in its folder (``estimate_scene_records``, cached beside the
+    folder); images it leaves undecided stay unknown. Logs one line with the counts per label.
+    """
+    from gsmsdr_ns.estimate.records import CACHE_FILE, estimate_scene_records
+
+    folders = {Path(f).parent for f in image_filenames}
+    if len(folders) != 1:
+        CONSOLE.print(f"gsmsdr-data: training images span {len(folders)} folders; not estimating their degradation")
+        return records
+    folder = folders.pop()
+    entries = estimate_scene_records(folder.parent, folder.name)
+    estimated, counts = [], Counter()
+    for path, record in zip(image_filenames, records):
+        entry = entries.get(Path(path).name)
+        if record["degraded"] is not None or entry is None:
+            estimated.append(record)
+            continue
+        label = entry.get("estimate", {}).get("label", "unknown")
+        if label == "unknown" and entry.get("effects"):
+            label = "blurred (kind unknown)"  # both blur models, as an unknown image would get, but no resolution model
+        counts[label] += 1
+        decided = label != "unknown"
+        estimated.append(record_from_entry(record["name"], "train", entry) if decided else record)
+    summary = ", ".join(f"{n} {label}" for label, n in sorted(counts.items()))
+    CONSOLE.print(
+        f"gsmsdr-data: no degradation records for {sum(counts.values())} training images; estimated from the photos: "
+        f"{summary} (cached in {folder.parent / CACHE_FILE}; write a degradation.json to override)",
+        soft_wrap=True,
+        markup=False,
+        highlight=False,
+    )
+    return estimated
