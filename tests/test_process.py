@@ -144,3 +144,29 @@ def test_ns_train_starts_on_the_processed_fern(fern_scene, tmp_path: Path):
     log = proc.stdout + proc.stderr
     assert proc.returncode == 0, f"ns-train failed (exit {proc.returncode}):\n{log[-5000:]}"
     assert list((tmp_path / "outputs").rglob("*.ckpt")), log[-3000:]
+
+
+def test_photos_share_a_camera_per_image_size(tmp_path: Path):
+    """camera_mode "auto" groups photos by size: each group gets one shared camera (one per device)."""
+    from gsmsdr_ns.process.sfm import names_by_size
+
+    for name, size in (("a.png", (8, 6)), ("b.png", (4, 3)), ("c.png", (8, 6))):
+        write_image(tmp_path / name, np.zeros((size[1], size[0], 3), np.uint8))
+    assert names_by_size(tmp_path, ["a.png", "b.png", "c.png"]) == [["a.png", "c.png"], ["b.png"]]
+
+
+def test_downscaled_copies_have_floor_halved_sizes(tmp_path: Path):
+    """images_2/, images_4/ hold every photo at floor(size / factor), the size nerfstudio rescales cameras to."""
+    from gsmsdr_ns.data.images import read_image_size
+    from gsmsdr_ns.process.sfm import write_downscaled
+
+    (tmp_path / "images").mkdir()
+    write_image(tmp_path / "images" / "a.png", np.full((21, 30, 3), 200, np.uint8))
+    write_downscaled(tmp_path, 2, ["a.png"])
+    assert read_image_size(tmp_path / "images_2" / "a.png") == (15, 10)
+    assert read_image_size(tmp_path / "images_4" / "a.png") == (7, 5)
+    small = tmp_path / "small"
+    (small / "images").mkdir(parents=True)
+    write_image(small / "images" / "a.png", np.zeros((3, 3, 3), np.uint8))
+    with pytest.raises(ValueError, match="too small"):
+        write_downscaled(small, 2, ["a.png"])
