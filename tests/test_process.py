@@ -170,3 +170,23 @@ def test_downscaled_copies_have_floor_halved_sizes(tmp_path: Path):
     write_image(small / "images" / "a.png", np.zeros((3, 3, 3), np.uint8))
     with pytest.raises(ValueError, match="too small"):
         write_downscaled(small, 2, ["a.png"])
+
+
+def test_mixed_resolution_photos_register_with_a_camera_per_size(tmp_path: Path):
+    """Half of the fern photos from a 'lower-resolution phone' (images_16): all register, and each size gets its
+    own pinhole camera, the small one with half the focal length."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    small = list_images(FERN / "images_16")
+    for i, name in enumerate(list_images(FERN_IMAGES)):  # same photos in the same sorted order
+        source = FERN_IMAGES / name if i % 2 == 0 else FERN / "images_16" / small[i]
+        write_image(photos / name, read_image(source))
+    result = process_photos(photos, tmp_path / "scene", ProcessConfig())
+    assert len(result.registered) == 20
+    cameras = read_colmap_cameras(tmp_path / "scene" / "sparse" / "0")
+    large = cameras.sizes[:, 0] > 300
+    assert large.tolist() == [i % 2 == 0 for i in range(20)]
+    for group in (large, ~large):  # one shared camera per size
+        assert np.unique(cameras.intrinsics[group], axis=0).shape[0] == 1
+    ratio = cameras.intrinsics[~large][0, 0] / cameras.intrinsics[large][0, 0]
+    assert abs(ratio - 0.5) < 0.01

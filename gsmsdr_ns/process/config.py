@@ -29,7 +29,7 @@ class ProcessConfig:
     """Sequential matching: a COLMAP vocabulary-tree file; when given, loop detection by image retrieval is on."""
     max_image_size: int = 1000
     """Longest side (pixels) that SIFT sees; larger photos are downscaled for feature extraction only (the written
-    images keep their resolution). Smaller caps keep blurred photos matchable."""
+    images keep their resolution)."""
     estimate_affine_shape: bool = True
     """Affine-adapted SIFT features (slower, more matches on blurred and oblique views)."""
     max_num_features: int = 8192
@@ -44,7 +44,8 @@ class ProcessConfig:
     min_registered: int = 3
     """The run fails when the kept model registers fewer photos than this."""
     hold: Optional[int] = None
-    """Write a ``hold=N`` file: every N-th view in file-name order becomes a sharp test view (Deblur-NeRF rule)."""
+    """Write a ``hold=N`` file: every N-th photo in file-name order is held out for evaluation (Deblur-NeRF rule;
+    the scene is then read as a Deblur-NeRF scene)."""
     num_downscales: int = 0
     """Also write ``images_2/``, ``images_4/``, ... (this many halvings) for ``--downscale-factor`` training."""
     device: Device = "auto"
