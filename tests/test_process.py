@@ -4,6 +4,8 @@ photos, and the written scene trained by ``ns-train``."""
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -126,6 +128,18 @@ def test_bad_options_and_inputs_are_named(tmp_path: Path):
     with pytest.raises(ValueError, match="at least 2"):
         process_photos(tmp_path / "one", tmp_path / "o", ProcessConfig())
     assert not (tmp_path / "o").exists()
+
+
+def test_cli_reports_bad_input_as_one_error_line(tmp_path: Path):
+    """``python -m gsmsdr_ns.process.cli`` (what the gsmsdr-process script runs): exit status 1, the reason shown."""
+    (tmp_path / "one").mkdir()
+    write_image(tmp_path / "one" / "only.png", np.zeros((8, 8, 3), np.uint8))
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]), COLUMNS="200")
+    proc = subprocess.run([sys.executable, "-m", "gsmsdr_ns.process.cli", "--images", str(tmp_path / "one"),
+                           "--out", str(tmp_path / "scene")], capture_output=True, text=True, env=env, timeout=300)  # fmt: skip
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "error:" in proc.stdout and "at least 2" in proc.stdout
+    assert not (tmp_path / "scene").exists()
 
 
 def test_auto_matching_switches_to_sequential_for_many_photos():
