@@ -165,8 +165,9 @@ def registered_names(model: Optional[pycolmap.Reconstruction]) -> List[str]:
 
 def check_registration(names: List[str], registered: List[str], scores: Dict[str, float], config: ProcessConfig,
                        images_dir: Path) -> None:  # fmt: skip
-    """Fail when fewer than ``min_registered`` photos or ``min_registered_fraction`` of them registered."""
-    needed = max(config.min_registered, int(np.ceil(config.min_registered_fraction * len(names))))
+    """Fail when fewer than ``min_registered`` photos (and never fewer than 2) or ``min_registered_fraction`` of
+    them registered."""
+    needed = max(2, config.min_registered, int(np.ceil(config.min_registered_fraction * len(names))))
     if len(registered) >= needed:
         return
     missing = describe_unregistered(names, registered, scores)
