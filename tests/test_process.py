@@ -1,0 +1,206 @@
+"""``gsmsdr-process`` on real photos: the LLFF fern poses recovered by pycolmap SfM, the clear failure on unrelated
+photos, and the written scene trained by ``ns-train``."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import TRAIN_FLAGS, run_cli
+from gsmsdr_ns.data.cameras import read_colmap_cameras
+from gsmsdr_ns.data.images import list_images, read_image, write_image
+from gsmsdr_ns.data.layout import detect_layout
+from gsmsdr_ns.process import ProcessConfig, RegistrationError, choose_matching, process_photos
+from gsmsdr_ns.process.cli import parse
+
+# The shared real data sits beside the repository (CI); GSMSDR_SHARED_DATA points elsewhere (e.g. from a worktree).
+SHARED_DATA = Path(os.environ.get("GSMSDR_SHARED_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"))
+FERN = SHARED_DATA / "llff-fern"
+FERN_IMAGES = FERN / "images_8"
+
+# The LLFF rotation columns are the camera's (down, right, backwards) axes; OpenCV / COLMAP's are (right, down,
+# forwards): new column j = sign_j * old column PERM_j.
+LLFF_TO_OPENCV_COLUMNS = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+def llff_cameras_opencv(poses_bounds: Path):
+    """Camera centres [N, 3] and camera-to-world rotations [N, 3, 3] (OpenCV axes) from poses_bounds.npy."""
+    poses = np.load(poses_bounds)[:, :15].reshape(-1, 3, 5)
+    rotations = poses[:, :, :3] @ LLFF_TO_OPENCV_COLUMNS
+    return poses[:, :, 3], rotations
+
+
+def umeyama(source: np.ndarray, target: np.ndarray):
+    """Similarity (scale, rotation [3, 3], translation [3]) minimising |scale * R @ source + t - target|^2."""
+    mu_s, mu_t = source.mean(0), target.mean(0)
+    xs, xt = source - mu_s, target - mu_t
+    u, sigma, vt = np.linalg.svd(xt.T @ xs / len(source))
+    sign = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    rotation = u @ sign @ vt
+    scale = np.trace(np.diag(sigma) @ sign) / xs.var(0).sum()
+    return scale, rotation, mu_t - scale * rotation @ mu_s
+
+
+def rotation_angle_deg(rotations: np.ndarray) -> np.ndarray:
+    """Angles [N] of rotation matrices [N, 3, 3] in degrees."""
+    cos = (np.trace(rotations, axis1=1, axis2=2) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+@pytest.fixture(scope="module")
+def fern_scene(tmp_path_factory: pytest.TempPathFactory):
+    """``gsmsdr-process`` (its CLI main) run once on the 20 fern photos."""
+    if not FERN_IMAGES.is_dir():
+        pytest.fail(f"the fern photos are missing: expected them at {FERN_IMAGES} (set GSMSDR_SHARED_DATA)")
+    out = tmp_path_factory.mktemp("process") / "fern"
+    start = time.perf_counter()
+    result = parse(["--images", str(FERN_IMAGES), "--out", str(out), "--hold", "8"]).main()
+    print(f"gsmsdr-process on {len(list_images(FERN_IMAGES))} fern photos: {time.perf_counter() - start:.1f}s")
+    return out, result
+
+
+def test_fern_registers_all_photos_with_llff_poses(fern_scene):
+    out, result = fern_scene
+    names = list_images(FERN_IMAGES)
+    assert result.registered == names and result.unregistered == []
+    assert result.matching == "exhaustive"
+    assert sorted(p.name for p in out.iterdir()) == ["hold=8", "images", "sparse"]
+    assert list_images(out / "images") == names
+    assert detect_layout(out).reader == "deblur-nerf-data"  # hold=8 makes it a Deblur-NeRF scene
+
+    cameras = read_colmap_cameras(out / "sparse" / "0")
+    assert cameras.names == names
+    assert np.all(cameras.distortion == 0.0)  # undistorted to pinhole
+    centres, rotations = cameras.c2w[:, :3, 3], cameras.c2w[:, :3, :3]
+    llff_centres, llff_rotations = llff_cameras_opencv(FERN / "poses_bounds.npy")
+
+    scale, rotation, translation = umeyama(centres, llff_centres)
+    aligned = scale * centres @ rotation.T + translation
+    diameter = np.max(np.linalg.norm(llff_centres[:, None] - llff_centres[None], axis=-1))
+    centre_error = np.linalg.norm(aligned - llff_centres, axis=1) / diameter
+    angle_error = rotation_angle_deg(np.swapaxes(llff_rotations, 1, 2) @ rotation @ rotations)
+    print(f"max centre error {centre_error.max():.4f} of the diameter, max rotation error {angle_error.max():.3f} deg")
+    assert centre_error.max() < 0.01
+    assert angle_error.max() < 1.0
+
+
+def test_unrelated_photos_fail_clearly_and_leave_nothing(tmp_path: Path):
+    """Three photos of different, unrelated content cannot form a model: a RegistrationError names them with their
+    sharpness, and neither the output nor a temp folder remains."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    rng = np.random.default_rng(0)
+    fern = read_image(FERN_IMAGES / "image000.png")
+    write_image(photos / "a_fern.png", fern)
+    write_image(photos / "b_noise.png", rng.integers(0, 256, size=fern.shape, dtype=np.uint8))
+    write_image(photos / "c_flat.png", np.full_like(fern, 128))
+    out = tmp_path / "scene"
+    with pytest.raises(RegistrationError) as info:
+        process_photos(photos, out, ProcessConfig())
+    message = str(info.value)
+    assert "0 of 3 photos" in message and str(photos) in message
+    for name in ("a_fern.png", "b_noise.png", "c_flat.png"):
+        assert name in message
+    assert "(0.00e+00)" in message  # the flat photo's sharpness
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]
+
+
+def test_existing_output_needs_overwrite(tmp_path: Path):
+    out = tmp_path / "scene"
+    out.mkdir()
+    (out / "keep.txt").write_text("previous scene")
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        process_photos(FERN_IMAGES, out, ProcessConfig())
+    assert (out / "keep.txt").read_text() == "previous scene"
+
+
+def test_bad_options_and_inputs_are_named(tmp_path: Path):
+    with pytest.raises(ValueError, match="min-registered-fraction"):
+        process_photos(FERN_IMAGES, tmp_path / "o", ProcessConfig(min_registered_fraction=1.5))
+    (tmp_path / "one").mkdir()
+    write_image(tmp_path / "one" / "only.png", np.zeros((8, 8, 3), np.uint8))
+    with pytest.raises(ValueError, match="at least 2"):
+        process_photos(tmp_path / "one", tmp_path / "o", ProcessConfig())
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_reports_bad_input_as_one_error_line(tmp_path: Path):
+    """``python -m gsmsdr_ns.process.cli`` (what the gsmsdr-process script runs): exit status 1, the reason shown."""
+    (tmp_path / "one").mkdir()
+    write_image(tmp_path / "one" / "only.png", np.zeros((8, 8, 3), np.uint8))
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]), COLUMNS="200")
+    proc = subprocess.run([sys.executable, "-m", "gsmsdr_ns.process.cli", "--images", str(tmp_path / "one"),
+                           "--out", str(tmp_path / "scene")], capture_output=True, text=True, env=env, timeout=300)  # fmt: skip
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "error:" in proc.stdout and "at least 2" in proc.stdout
+    assert not (tmp_path / "scene").exists()
+
+
+def test_auto_matching_switches_to_sequential_for_many_photos():
+    config = ProcessConfig(exhaustive_max_images=50)
+    assert choose_matching(50, config) == "exhaustive"
+    assert choose_matching(51, config) == "sequential"
+    assert choose_matching(10, ProcessConfig(matching="sequential")) == "sequential"
+
+
+def test_ns_train_starts_on_the_processed_fern(fern_scene, tmp_path: Path):
+    """The processed scene trains with ``ns-train gsmsdr-lite`` (a few CPU steps)."""
+    out, _ = fern_scene
+    args = ["gsmsdr-lite", "--data", out, "--output-dir", tmp_path / "outputs", "--timestamp", "run",
+            "--max-num-iterations", 4, "--steps-per-save", 4, *TRAIN_FLAGS]  # fmt: skip
+    proc = run_cli("ns-train", args, cwd=tmp_path)
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0, f"ns-train failed (exit {proc.returncode}):\n{log[-5000:]}"
+    assert list((tmp_path / "outputs").rglob("*.ckpt")), log[-3000:]
+
+
+def test_photos_share_a_camera_per_image_size(tmp_path: Path):
+    """camera_mode "auto" groups photos by size: each group gets one shared camera (one per device)."""
+    from gsmsdr_ns.process.sfm import names_by_size
+
+    for name, size in (("a.png", (8, 6)), ("b.png", (4, 3)), ("c.png", (8, 6))):
+        write_image(tmp_path / name, np.zeros((size[1], size[0], 3), np.uint8))
+    assert names_by_size(tmp_path, ["a.png", "b.png", "c.png"]) == [["a.png", "c.png"], ["b.png"]]
+
+
+def test_downscaled_copies_have_floor_halved_sizes(tmp_path: Path):
+    """images_2/, images_4/ hold every photo at floor(size / factor), the size nerfstudio rescales cameras to."""
+    from gsmsdr_ns.data.images import read_image_size
+    from gsmsdr_ns.process.sfm import write_downscaled
+
+    (tmp_path / "images").mkdir()
+    write_image(tmp_path / "images" / "a.png", np.full((21, 30, 3), 200, np.uint8))
+    write_downscaled(tmp_path, 2, ["a.png"])
+    assert read_image_size(tmp_path / "images_2" / "a.png") == (15, 10)
+    assert read_image_size(tmp_path / "images_4" / "a.png") == (7, 5)
+    small = tmp_path / "small"
+    (small / "images").mkdir(parents=True)
+    write_image(small / "images" / "a.png", np.zeros((3, 3, 3), np.uint8))
+    with pytest.raises(ValueError, match="too small"):
+        write_downscaled(small, 2, ["a.png"])
+
+
+def test_mixed_resolution_photos_register_with_a_camera_per_size(tmp_path: Path):
+    """Half of the fern photos from a 'lower-resolution phone' (images_16): all register, and each size gets its
+    own pinhole camera, the small one with half the focal length."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    small = list_images(FERN / "images_16")
+    for i, name in enumerate(list_images(FERN_IMAGES)):  # same photos in the same sorted order
+        source = FERN_IMAGES / name if i % 2 == 0 else FERN / "images_16" / small[i]
+        write_image(photos / name, read_image(source))
+    result = process_photos(photos, tmp_path / "scene", ProcessConfig())
+    assert len(result.registered) == 20
+    cameras = read_colmap_cameras(tmp_path / "scene" / "sparse" / "0")
+    large = cameras.sizes[:, 0] > 300
+    assert large.tolist() == [i % 2 == 0 for i in range(20)]
+    for group in (large, ~large):  # one shared camera per size
+        assert np.unique(cameras.intrinsics[group], axis=0).shape[0] == 1
+    ratio = cameras.intrinsics[~large][0, 0] / cameras.intrinsics[large][0, 0]
+    assert abs(ratio - 0.5) < 0.01
