@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from conftest import TRAIN_FLAGS, run_cli
-from gsmsdr_ns.data.cameras import read_colmap_cameras
-from gsmsdr_ns.data.images import list_images, read_image, write_image
+from gsmsdr_ns.io.colmap import read_colmap
+from gsmsdr_ns.io.images import list_images, read_image, write_image
 from gsmsdr_ns.data.layout import detect_layout
 from gsmsdr_ns.process import ProcessConfig, RegistrationError, choose_matching, process_photos
 from gsmsdr_ns.process.cli import parse
@@ -74,7 +74,7 @@ def test_fern_registers_all_photos_with_llff_poses(fern_scene):
     assert list_images(out / "images") == names
     assert detect_layout(out).reader == "deblur-nerf-data"  # hold=8 makes it a Deblur-NeRF scene
 
-    cameras = read_colmap_cameras(out / "sparse" / "0")
+    cameras = read_colmap(out / "sparse" / "0")
     assert cameras.names == names
     assert np.all(cameras.distortion == 0.0)  # undistorted to pinhole
     centres, rotations = cameras.c2w[:, :3, 3], cameras.c2w[:, :3, :3]
@@ -171,7 +171,7 @@ def test_photos_share_a_camera_per_image_size(tmp_path: Path):
 
 def test_downscaled_copies_have_floor_halved_sizes(tmp_path: Path):
     """images_2/, images_4/ hold every photo at floor(size / factor), the size nerfstudio rescales cameras to."""
-    from gsmsdr_ns.data.images import read_image_size
+    from gsmsdr_ns.io.images import read_image_size
     from gsmsdr_ns.process.sfm import write_downscaled
 
     (tmp_path / "images").mkdir()
@@ -197,7 +197,7 @@ def test_mixed_resolution_photos_register_with_a_camera_per_size(tmp_path: Path)
         write_image(photos / name, read_image(source))
     result = process_photos(photos, tmp_path / "scene", ProcessConfig())
     assert len(result.registered) == 20
-    cameras = read_colmap_cameras(tmp_path / "scene" / "sparse" / "0")
+    cameras = read_colmap(tmp_path / "scene" / "sparse" / "0")
     large = cameras.sizes[:, 0] > 300
     assert large.tolist() == [i % 2 == 0 for i in range(20)]
     for group in (large, ~large):  # one shared camera per size

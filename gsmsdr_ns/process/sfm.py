@@ -16,7 +16,6 @@ either the complete new scene or untouched. An existing non-empty ``<out>`` is r
 from __future__ import annotations
 
 import os
-import secrets
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -26,8 +25,9 @@ from typing import Callable, Dict, List, Optional, Tuple
 import numpy as np
 import pycolmap
 
-from gsmsdr_ns.data.errors import GSMSDRDataError
-from gsmsdr_ns.data.images import list_images, read_image_size
+from gsmsdr_ns.io.atomic import atomic_dir
+from gsmsdr_ns.io.errors import InputError
+from gsmsdr_ns.io.images import list_images, read_image_size
 from gsmsdr_ns.process.config import ProcessConfig
 from gsmsdr_ns.process.sharpness import sharpness_scores
 
@@ -39,7 +39,7 @@ _CAMERA_MODES = {
 _DEVICES = {"auto": pycolmap.Device.auto, "cpu": pycolmap.Device.cpu, "cuda": pycolmap.Device.cuda}
 
 
-class RegistrationError(GSMSDRDataError):
+class RegistrationError(InputError):
     """Too few photos registered into one model."""
 
 
@@ -73,18 +73,18 @@ def choose_matching(num_images: int, config: ProcessConfig) -> str:
 def check_config(config: ProcessConfig) -> None:
     """Reject option values that cannot work, naming the option."""
     if not 0.0 <= config.min_registered_fraction <= 1.0:
-        raise GSMSDRDataError(
+        raise InputError(
             f"gsmsdr-process: --min-registered-fraction {config.min_registered_fraction} is not in [0, 1]."
         )
     for name in ("max_image_size", "max_num_features", "sequential_overlap", "exhaustive_max_images"):
         if getattr(config, name) < 1:
-            raise GSMSDRDataError(f"gsmsdr-process: --{name.replace('_', '-')} must be >= 1.")
+            raise InputError(f"gsmsdr-process: --{name.replace('_', '-')} must be >= 1.")
     if config.hold is not None and config.hold < 1:
-        raise GSMSDRDataError(f"gsmsdr-process: --hold {config.hold} must be >= 1 (or left unset).")
+        raise InputError(f"gsmsdr-process: --hold {config.hold} must be >= 1 (or left unset).")
     if config.num_downscales < 0:
-        raise GSMSDRDataError(f"gsmsdr-process: --num-downscales {config.num_downscales} must be >= 0.")
+        raise InputError(f"gsmsdr-process: --num-downscales {config.num_downscales} must be >= 0.")
     if config.vocab_tree is not None and not Path(config.vocab_tree).is_file():
-        raise GSMSDRDataError(f"gsmsdr-process: vocabulary tree '{config.vocab_tree}' does not exist.")
+        raise InputError(f"gsmsdr-process: vocabulary tree '{config.vocab_tree}' does not exist.")
 
 
 def extract_and_match(database: Path, images_dir: Path, names: List[str], config: ProcessConfig) -> str:
@@ -217,7 +217,7 @@ def write_downscaled(scene: Path, num_downscales: int, names: List[str]) -> None
             with Image.open(scene / "images" / name) as image:
                 size = (image.width // factor, image.height // factor)
                 if min(size) < 1:
-                    raise GSMSDRDataError(
+                    raise InputError(
                         f"gsmsdr-process: '{name}' ({image.width}x{image.height}) is too small for "
                         f"--num-downscales {num_downscales}; lower it."
                     )
@@ -232,35 +232,20 @@ def _check_target(out: Path, overwrite: bool) -> None:
             raise FileExistsError(f"gsmsdr-process: output '{out}' exists and is not empty; pass --overwrite.")
 
 
-def _commit_scene(tmp: Path, out: Path) -> None:
-    """Rename the finished ``tmp`` to ``out``; a previous ``out`` is moved aside first and deleted only after."""
-    old = out.parent / f".{out.name}.old-{os.getpid()}-{secrets.token_hex(4)}" if out.exists() else None
-    if old is not None:
-        os.rename(out, old)
-    try:
-        os.rename(tmp, out)
-    except BaseException:
-        if old is not None:
-            os.rename(old, out)
-        raise
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
-
-
 def process_photos(
     images_dir: Path, out: Path, config: ProcessConfig, overwrite: bool = False, progress=None
 ) -> ProcessResult:
     """Run SfM on the photos directly inside ``images_dir`` and write the scene to ``out`` (module docstring).
 
     ``progress`` is an optional ``rich.progress.Progress`` to report stages on. Raises :class:`RegistrationError`
-    (nothing written) when too few photos register, GSMSDRDataError for unusable input, FileExistsError for an
+    (nothing written) when too few photos register, InputError for unusable input, FileExistsError for an
     existing output without ``overwrite``.
     """
     images_dir, out = Path(images_dir), Path(out)
     check_config(config)
     names = list_images(images_dir)
     if len(names) < 2:
-        raise GSMSDRDataError(
+        raise InputError(
             f"gsmsdr-process: '{images_dir}' has {len(names)} photo(s); structure-from-motion needs at least 2 "
             "overlapping photos (png, jpg, ...) directly inside the folder."
         )
@@ -269,9 +254,7 @@ def process_photos(
     pycolmap.set_random_seed(config.seed)
     seconds: Dict[str, float] = {}
     stage = _Stages(progress, seconds)
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}-{secrets.token_hex(4)}"
-    tmp.mkdir()
-    try:
+    with atomic_dir(out) as tmp:
         work = tmp / ".sfm"
         work.mkdir()
         with stage("sharpness", len(names)) as advance:
@@ -292,9 +275,6 @@ def process_photos(
         if config.hold is not None:
             (tmp / f"hold={config.hold}").touch()
         _check_target(out, overwrite)  # something may have appeared meanwhile
-        _commit_scene(tmp, out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return ProcessResult(
         scene=out, matching=matching, registered=registered,
         unregistered=unregistered_with_scores(names, registered, scores),

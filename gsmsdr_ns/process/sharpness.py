@@ -9,7 +9,7 @@ import numpy as np
 from skimage.color import rgb2gray
 from skimage.filters import laplace
 
-from gsmsdr_ns.data.images import read_image
+from gsmsdr_ns.io.images import read_image
 
 
 def variance_of_laplacian(rgb: np.ndarray) -> float:
