@@ -16,13 +16,12 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.models.splatfacto import SH2RGB
 
 from gsmsdr_ns.plugin.checkpoint import checkpoint_safe_globals
+from gsmsdr_ns.plugin.lpips import LPIPSUnavailable, lpips_backbone_cache_path
 from gsmsdr_ns.plugin.model import (
     GSMSDRModelConfig,
     GSMSDRWarning,
-    LPIPSUnavailable,
     NonFiniteLossError,
     intrinsics_at_scale,
-    lpips_backbone_cache_path,
     viewmats_from_camera_to_worlds,
 )
 
@@ -147,9 +146,9 @@ def test_non_finite_seed_points_are_dropped():
 def test_lpips_is_left_out_offline_with_one_warning(tmp_path, monkeypatch):
     import torchmetrics.image.lpip as lpip_module
 
-    import gsmsdr_ns.plugin.model as model_module
+    import gsmsdr_ns.plugin.lpips as lpips_module
 
-    monkeypatch.setattr(model_module, "_lpips_warning_shown", False)  # earlier tests in this process saw it
+    monkeypatch.setattr(lpips_module, "_warning_shown", False)  # earlier tests in this process saw it
     original_class = lpip_module.LearnedPerceptualImagePatchSimilarity
     monkeypatch.setattr(torch.hub, "_hub_dir", str(tmp_path / "hub"))  # an empty torch hub cache
     assert lpips_backbone_cache_path().parent == tmp_path / "hub" / "checkpoints"

@@ -28,24 +28,39 @@ from __future__ import annotations
 import contextlib
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Dict, Iterator, List, Literal, Optional, Tuple, Type, Union
-from urllib.parse import urlparse
+from typing import Dict, List, Literal, Optional, Tuple, Type, Union
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.callbacks import (
+    TrainingCallback,
+    TrainingCallbackAttributes,
+    TrainingCallbackLocation,
+)
 from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
-from gsmsdr_ns.blur.degradation_model import DegradationModel, DegradationPlan, remap_legacy_keys
+from gsmsdr_ns.blur.degradation_model import (
+    DegradationModel,
+    DegradationPlan,
+    remap_legacy_keys,
+)
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.hpko import HPKOScheduler
-from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, training_profiles
+from gsmsdr_ns.blur.profile import (
+    DegradationProfile,
+    ResolutionLossModel,
+    training_profiles,
+)
+from gsmsdr_ns.plugin.lpips import (
+    LPIPSUnavailable,
+    lpips_backbone_cache_path,
+    lpips_disabled,
+    warn_lpips_disabled,
+)
+from gsmsdr_ns.render.gsplat_backend import require_gsplat_cuda
 from gsmsdr_ns.timing_hooks import stage, timed
-
-_lpips_warning_shown = False  # the "LPIPS disabled" warning is shown once per process, however many models are built
 
 GAUSSIAN_PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
 MIN_SEED_POINTS = 4  # splatfacto sizes each Gaussian from its 3 nearest neighbours
@@ -121,43 +136,6 @@ def intrinsics_at_scale(camera: Cameras, downscale: int, device: torch.device) -
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# LPIPS without downloads
-
-
-def lpips_backbone_cache_path() -> Path:
-    """Where torchvision keeps the AlexNet weights that torchmetrics' default LPIPS needs."""
-    from torchvision.models import AlexNet_Weights
-
-    filename = Path(urlparse(AlexNet_Weights.DEFAULT.url).path).name
-    return Path(torch.hub.get_dir()) / "checkpoints" / filename
-
-
-class LPIPSUnavailable(torch.nn.Module):
-    """Stands in for LPIPS when its backbone weights are not cached; returns NaN, which the model drops."""
-
-    def forward(self, *_args, **_kwargs) -> Tensor:
-        return torch.tensor(float("nan"))
-
-
-@contextlib.contextmanager
-def lpips_disabled() -> Iterator[None]:
-    """While active, torchmetrics' LPIPS class builds an :class:`LPIPSUnavailable` instead of downloading AlexNet.
-
-    splatfacto's ``populate_modules`` imports ``LearnedPerceptualImagePatchSimilarity`` from
-    ``torchmetrics.image.lpip`` when it runs, so swapping the module attribute for the duration of that call is
-    enough; it is restored afterwards.
-    """
-    import torchmetrics.image.lpip as lpip_module
-
-    original = lpip_module.LearnedPerceptualImagePatchSimilarity
-    lpip_module.LearnedPerceptualImagePatchSimilarity = lambda *args, **kwargs: LPIPSUnavailable()  # type: ignore
-    try:
-        yield
-    finally:
-        lpip_module.LearnedPerceptualImagePatchSimilarity = original
-
-
-# ---------------------------------------------------------------------------------------------------------------
 
 
 class GSMSDRModel(SplatfactoModel):
@@ -179,7 +157,7 @@ class GSMSDRModel(SplatfactoModel):
         if seed is not None:
             self._init_colours(seed[1])
         if not self.has_lpips:
-            self._warn_lpips_disabled(lpips_path)
+            warn_lpips_disabled(lpips_path, GSMSDRWarning)
         self._populate_degradation_modules()
 
     def _populate_degradation_modules(self) -> None:
@@ -221,20 +199,6 @@ class GSMSDRModel(SplatfactoModel):
 
     def _describe_modules(self) -> str:
         return self.degradation.describe()
-
-    @staticmethod
-    def _warn_lpips_disabled(lpips_path: Path) -> None:
-        global _lpips_warning_shown
-        if _lpips_warning_shown:
-            return
-        _lpips_warning_shown = True
-        warnings.warn(
-            f"gsmsdr: LPIPS is disabled because its AlexNet backbone is not in the torch hub cache ({lpips_path}) "
-            "and nothing is downloaded at run time. Metrics (ns-eval) report psnr and ssim only. To enable LPIPS, "
-            "place alexnet weights at that path (or set TORCH_HOME to a cache that has them).",
-            GSMSDRWarning,
-            stacklevel=4,
-        )
 
     def _usable_seed_points(self) -> Optional[Tuple[Tensor, Tensor]]:
         """The seed point cloud without non-finite points, or None (random initialisation, with a warning)."""
@@ -367,6 +331,8 @@ class GSMSDRModel(SplatfactoModel):
         dataset = getattr(datamanager, "train_dataset", None)
         if self.blur_field is not None and dataset is not None:
             self.set_train_camera_centres(dataset.cameras.camera_to_worlds)
+        if self.device.type == "cuda":
+            require_gsplat_cuda()  # at set-up, not at the first render: a clear error naming what is missing
         callbacks = super().get_training_callbacks(training_callback_attributes)
         callbacks.append(
             TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self.degradation.step)
@@ -414,7 +380,9 @@ class GSMSDRModel(SplatfactoModel):
         self, gaussians: Dict[str, Tensor], viewmats: Tensor, K: Tensor, width: int, height: int, with_depth: bool
     ) -> Tuple[Tensor, Tensor, Dict]:
         """Activate the parameters and rasterize: render [1, H, W, 3 or 4], alpha [1, H, W, 1], info."""
-        from gsmsdr_ns.render import rasterization  # imported on first render: keeps method discovery light
+        from gsmsdr_ns.render import (
+            rasterization,  # imported on first render: keeps method discovery light
+        )
 
         colours, sh_degree = self._colours_and_sh_degree(gaussians)
         return rasterization(
