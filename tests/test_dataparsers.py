@@ -544,7 +544,8 @@ def test_auto_detection_picks_the_reader_and_says_why(kind, synth16, tmp_path, c
         train = parser.get_dataparser_outputs("train")
         test = parser.get_dataparser_outputs("test")
     lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("gsmsdr-data:")]
-    assert lines == [f"gsmsdr-data: reading '{scene}' with {reader} ({lines[0].split('(', 1)[1]}"]
+    assert lines[0] == f"gsmsdr-data: reading '{scene}' with {reader} ({lines[0].split('(', 1)[1]}"
+    assert all("estimated from the photos" in line for line in lines[1:]) and len(lines) <= 2, lines
     assert reason in lines[0]
     assert isinstance(parser.delegate, parser_type or Nerfstudio)
     assert len(train.image_filenames) + len(test.image_filenames) == NUM_VIEWS

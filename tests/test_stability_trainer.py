@@ -46,6 +46,7 @@ def trainer_factory(tiny_training_scene, tmp_path):
         config.logging.steps_per_log = 10_000
         config.logging.local_writer.enable = False
         config.pipeline.datamanager.data = tiny_training_scene
+        config.pipeline.datamanager.dataparser.estimate_degradations = False  # unknown images: lens + field
         config.pipeline.datamanager.cache_images_type = "float32"
         model = config.pipeline.model
         model.num_downscales, model.warmup_length, model.refine_every = 0, 2, 2
