@@ -1,6 +1,6 @@
 """Does the blur field pay off? A generated motion-blurred scene trained briefly with ``gsmsdr-lite`` (gsmsdr's CPU
 preset) and with plain Gaussians (the same preset with ``degradation sharp``: a splatfacto step on the blurry images),
-through nerfstudio's trainer (``gsmsdr_ns.bench.accuracy``: same scene, cameras, seed, step budget and schedule for
+through nerfstudio's trainer (``gsmsdr_ns.bench.training``: same scene, cameras, seed, step budget and schedule for
 both).
 
 Scene: the ``motion-strong`` variant (16-32 px of shake at 600 px width: 4.3-8.5 px at the 160 px used here), 24 views,
@@ -39,10 +39,12 @@ from pathlib import Path
 
 import pytest
 
-from gsmsdr_ns.bench.accuracy import RunResult, SceneSpec, Schedule, run_method
+from gsmsdr_ns.bench.scenes import SceneSpec
+from gsmsdr_ns.bench.training import RunResult, run_method
+from gsmsdr_ns.plugin.schedule import TrainingSchedule
 
 SPEC = SceneSpec("motion-strong", width=160, height=120, num_views=24, hold=6)
-SCHEDULE = Schedule(1000, num_downscales=1)
+SCHEDULE = TrainingSchedule.bench(1000, num_downscales=1)
 METHOD = "gsmsdr-lite"
 FIT_MARGIN_DB = 0.2
 TEST_PSNR_MARGIN_DB = 0.2
