@@ -69,31 +69,20 @@ def ensure_scene(scene: Path) -> Path:
 
 
 def demo_trainer_config(scene: Path, output_dir: Path, steps: int, device: str):
-    """The ``gsmsdr-lite`` method config with schedules scaled down to ``steps``."""
+    """The ``gsmsdr-lite`` method config with schedules scaled down to ``steps`` (:meth:`TrainingSchedule.demo`)."""
     from gsmsdr_ns.plugin.method_config import gsmsdr_lite_trainer_config
+    from gsmsdr_ns.plugin.schedule import TrainingSchedule
 
     config = gsmsdr_lite_trainer_config()
     config.data = scene
     config.output_dir = output_dir
     config.experiment_name = "demo"
-    config.max_num_iterations = steps
-    config.steps_per_save = steps
     config.vis = "tensorboard"  # no viewer server that would keep the process alive after training
     config.steps_per_eval_image = 0
     config.steps_per_eval_all_images = 0
     if device != "auto":
         config.machine.device_type = device
-    model = config.pipeline.model
-    model.num_downscales = 2  # HPKO: 1/4 resolution with 5x5 kernels, then 1/2 with 9x9, then full resolution
-    model.resolution_schedule = max(steps // 3, 1)
-    model.blur_field.warmup = max(steps // 20, 1)
-    model.warmup_length = max(steps // 10, 1)
-    model.refine_every = max(steps // 15, 1)
-    model.stop_split_at = steps // 2
-    model.reset_alpha_every = 1000  # no opacity reset in a run this short
-    model.densify_grad_thresh = 0.002  # keep the Gaussian count CPU-sized
-    model.sh_degree_interval = max(steps // 4, 1)
-    config.optimizers["means"]["scheduler"].max_steps = steps
+    TrainingSchedule.demo(steps).apply(config)
     return config
 
 

@@ -1,6 +1,6 @@
 """Does the blur field pay off? A generated motion-blurred scene trained briefly with ``gsmsdr-lite`` (gsmsdr's CPU
 preset) and with plain Gaussians (the same preset with ``degradation sharp``: a splatfacto step on the blurry images),
-through nerfstudio's trainer (``gsmsdr_ns.bench.accuracy``: same scene, cameras, seed, step budget and schedule for
+through nerfstudio's trainer (``gsmsdr_ns.bench.training``: same scene, cameras, seed, step budget and schedule for
 both).
 
 The comparison is ``slow`` (``make test-slow``): two trainings of 1000 steps. Scene: the ``motion-strong`` variant
@@ -29,10 +29,12 @@ from pathlib import Path
 
 import pytest
 
-from gsmsdr_ns.bench.accuracy import RunResult, SceneSpec, Schedule, run_method
+from gsmsdr_ns.bench.scenes import SceneSpec
+from gsmsdr_ns.bench.training import RunResult, run_method
+from gsmsdr_ns.plugin.schedule import TrainingSchedule
 
 SPEC = SceneSpec("motion-strong", width=160, height=120, num_views=24, hold=6)
-SCHEDULE = Schedule(1000, num_downscales=1)
+SCHEDULE = TrainingSchedule.bench(1000, num_downscales=1)
 METHOD = "gsmsdr-lite"
 FIT_MARGIN_DB = 0.2
 TEST_PSNR_MARGIN_DB = 0.2

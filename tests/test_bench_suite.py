@@ -1,6 +1,7 @@
 """`gsmsdr-bench suite`: suite YAML validation, the method table, the timing recorder (it must not change training),
-and a real two-run suite that is interrupted with Ctrl-C and resumed (finished runs are not redone), with its
-results.csv / results.md / PNG outputs checked. Real nerfstudio training on tiny generated scenes, no mocks."""
+and a real two-run suite that is interrupted by SIGINT after its first run and resumed (finished runs are not
+redone), with its results.csv / results.md / PNG outputs and their published copies checked. Real nerfstudio
+training on tiny generated scenes, no mocks."""
 
 from __future__ import annotations
 
@@ -10,23 +11,14 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 
 import pytest
 
 from gsmsdr_ns.bench.cli import map_quick
-from gsmsdr_ns.bench.suite import (
-    METHODS,
-    RunKey,
-    SuiteConfigError,
-    find_suite_file,
-    fingerprint,
-    finished_record,
-    load_suite,
-    record_path,
-    run_suite,
-)
+from gsmsdr_ns.bench.methods import METHODS
+from gsmsdr_ns.bench.runner import fingerprint, finished_record, record_path, run_suite
+from gsmsdr_ns.bench.suite_config import RunKey, SuiteConfigError, find_suite_file, load_suite
 
 BIN = Path(sys.executable).parent
 REPO = Path(__file__).resolve().parents[1]
@@ -42,11 +34,7 @@ schedule: {num_downscales: 0}
 threads: 1
 """
 
-
-RESUME_STEPS = 120
-RESUME_SUITE = TINY_SUITE.replace("steps: [20]", f"steps: [{RESUME_STEPS}]").replace("eval_every: 10", "eval_every: 40")
-"""The interrupted suite: its second run (the blur field, ~10 s) is long enough that the Ctrl-C sent when the first
-run's record appears lands inside it even when this process is descheduled for seconds on a loaded machine."""
+RESUME_STEPS = 20
 
 
 def write_suite(tmp_path: Path, text: str, name: str = "suite.yaml") -> Path:
@@ -58,7 +46,7 @@ def write_suite(tmp_path: Path, text: str, name: str = "suite.yaml") -> Path:
 # -- suite files -------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["quick", "full", "ablations", "ablations-quick", "accuracy"])
+@pytest.mark.parametrize("name", ["quick", "full", "ablations", "ablations-quick", "accuracy", "accuracy-3000"])
 def test_shipped_suites_load(name: str) -> None:
     suite = load_suite(find_suite_file(name))
     assert suite.name == name
@@ -79,6 +67,10 @@ BAD_SUITES = [
     ("variant and path", TINY_SUITE.replace("[motion]", "[{variant: motion, path: x}]"), "scenes[0]"),
     ("unknown schedule key", TINY_SUITE.replace("{num_downscales: 0}", "{num_downscale: 0}"),
      "schedule.num_downscale"),  # fmt: skip
+    ("bad optional schedule value", TINY_SUITE.replace("{num_downscales: 0}", "{densify_warmup_fraction: soon}"),
+     "schedule.densify_warmup_fraction"),  # fmt: skip
+    ("schedule value out of range", TINY_SUITE.replace("{num_downscales: 0}", "{resolution_fraction: 2.0}"),
+     "resolution_fraction"),  # fmt: skip
     ("bad eval interval", TINY_SUITE.replace("eval_every: 10", "eval_every: often"), "eval_every"),
     ("not a mapping", "- just\n- a list\n", "must be a YAML mapping"),
     ("not YAML", "name: [unclosed\n", "not valid YAML"),
@@ -92,6 +84,14 @@ def test_invalid_suite_names_file_and_key(tmp_path: Path, label: str, text: str,
         load_suite(path)
     message = str(info.value)
     assert str(path) in message and key in message, message
+
+
+def test_suite_schedule_reaches_the_training_schedule(tmp_path: Path) -> None:
+    text = TINY_SUITE.replace("{num_downscales: 0}", "{num_downscales: 0, densify_warmup_fraction: null, "
+                              "refinement_window_fraction: 1.0, lr_schedulers: [means]}")
+    schedule = load_suite(write_suite(tmp_path, text)).schedule_for(300)
+    assert schedule.steps == 300 and schedule.num_downscales == 0 and schedule.refinement_window_fraction == 1.0
+    assert schedule.densify_warmup_fraction is None and schedule.lr_schedulers == ("means",)
 
 
 def test_missing_suite_file(tmp_path: Path) -> None:
@@ -178,12 +178,13 @@ def test_quick_flag_maps_to_the_quick_suite() -> None:
 
 
 def _train_losses(data: Path, steps: int, record: bool, evaluate_at=()) -> tuple:
-    from gsmsdr_ns.bench.accuracy import InProcessRun, Schedule, method_config, shorten_schedules
-    from gsmsdr_ns.bench.suite import evaluate_test_views
+    from gsmsdr_ns.bench.evaluation import evaluate_test_views
     from gsmsdr_ns.bench.timing import TimingRecorder
+    from gsmsdr_ns.bench.training import InProcessRun, method_run_config
+    from gsmsdr_ns.plugin.schedule import TrainingSchedule
 
-    config = method_config("gsmsdr-lite", data, data.parent / "ns")
-    shorten_schedules(config, Schedule(steps, num_downscales=0, refinements=4))
+    schedule = TrainingSchedule.bench(steps, num_downscales=0, refinements=4)
+    config = method_run_config("gsmsdr-lite", data, data.parent / "ns", schedule)
     run = InProcessRun(config, seed=3)
     losses = []
     train_iteration = run.trainer.train_iteration
@@ -213,7 +214,7 @@ def _train_losses(data: Path, steps: int, record: bool, evaluate_at=()) -> tuple
 
 
 def test_timing_recorder_and_evaluations_do_not_change_training(tmp_path: Path) -> None:
-    from gsmsdr_ns.bench.accuracy import SceneSpec, ensure_scene
+    from gsmsdr_ns.bench.scenes import SceneSpec, ensure_scene
     from gsmsdr_ns.blur.field import BlurField
 
     data = ensure_scene(tmp_path, SceneSpec("motion", 48, 36, 8, 0, 4, num_points=300))
@@ -240,32 +241,34 @@ def test_timing_recorder_and_evaluations_do_not_change_training(tmp_path: Path) 
 
 @pytest.fixture(scope="module")
 def interrupted_suite(tmp_path_factory: pytest.TempPathFactory):
-    """Run the tiny suite (2 runs) with the CLI, Ctrl-C it after the first run's record appears, then rerun it."""
+    """Run the tiny suite (2 runs) with the CLI, interrupted by SIGINT after its first run (``--interrupt-after 1``:
+    the runner signals itself once that run's record and outputs are written, so where the interrupt lands does not
+    depend on timing), then rerun it to the end with ``--publish``."""
     work = tmp_path_factory.mktemp("suite")
-    config = write_suite(work, RESUME_SUITE, "tiny.yaml")
+    config = write_suite(work, TINY_SUITE, "tiny.yaml")
     out = work / "out"
+    published = work / "docs" / "results" / "tiny"
     first = out / "runs" / f"motion__plain__{RESUME_STEPS}__s0.json"
     second = out / "runs" / f"motion__full__{RESUME_STEPS}__s0.json"
     env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1", OMP_WAIT_POLICY="PASSIVE", COLUMNS="200")
     args = [str(BIN / "gsmsdr-bench"), "suite", "--config", str(config), "--out", str(out)]
     # A shell that starts jobs in the background (nohup, `cmd &` in CI scripts) makes them ignore SIGINT, and Python
     # then installs no KeyboardInterrupt handler: give the suite the default disposition a terminal's Ctrl-C meets.
-    proc = subprocess.Popen(args, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
-    deadline = time.monotonic() + 120
-    while not first.exists() and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    interrupted = proc.poll() is None
-    proc.send_signal(signal.SIGINT)
-    log1, _ = proc.communicate(timeout=120)
+    proc = subprocess.run(args + ["--interrupt-after", "1"], cwd=work, env=env, stdout=subprocess.PIPE,
+                          stderr=subprocess.STDOUT, text=True, timeout=600,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
+    log1 = proc.stdout
     assert first.exists(), log1[-4000:]
-    assert interrupted and proc.returncode == 130 and not second.exists(), log1[-4000:]
+    assert proc.returncode == 130 and not second.exists(), log1[-4000:]
     first_mtime = first.stat().st_mtime_ns
 
-    proc2 = subprocess.run(args, cwd=work, env=env, capture_output=True, text=True, timeout=300)
+    proc2 = subprocess.run(args + ["--publish", str(published)], cwd=work, env=env, capture_output=True, text=True,
+                           timeout=600)  # fmt: skip
     log2 = proc2.stdout + proc2.stderr
     assert proc2.returncode == 0, log2[-4000:]
-    return dict(config=config, out=out, first=first, second=second, first_mtime=first_mtime, log1=log1, log2=log2)
+    outputs = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}  # before later tests rewrite them
+    return dict(config=config, out=out, first=first, second=second, first_mtime=first_mtime, log1=log1, log2=log2,
+                published=published, outputs=outputs)  # fmt: skip
 
 
 def test_interrupted_suite_resumes_without_redoing_finished_runs(interrupted_suite) -> None:
@@ -323,10 +326,19 @@ def test_suite_outputs_parse(interrupted_suite) -> None:
             assert image.size[0] > 200 and image.size[1] > 100
 
 
+def test_published_results_are_the_outputs(interrupted_suite) -> None:
+    outputs, published = interrupted_suite["outputs"], interrupted_suite["published"]
+    names = sorted(p.name for p in published.iterdir())
+    assert names == ["psnr_vs_time_motion.png", "results.csv", "results.md", "time_breakdown.png"], names
+    for name in names:
+        assert (published / name).read_bytes() == outputs[name], name
+    assert "published " in interrupted_suite["log2"]
+
+
 def test_two_processes_generating_the_same_scene_both_get_it(tmp_path: Path) -> None:
     """Suites run in parallel (one per core) may need the same generated scene at the same time."""
     script = (
-        "import sys; from pathlib import Path; from gsmsdr_ns.bench.accuracy import SceneSpec, ensure_scene; "
+        "import sys; from pathlib import Path; from gsmsdr_ns.bench.scenes import SceneSpec, ensure_scene; "
         "print(ensure_scene(Path(sys.argv[1]), SceneSpec('motion', width=40, height=30, num_views=6, hold=3, "
         "num_points=200)))"
     )

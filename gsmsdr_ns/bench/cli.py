@@ -90,18 +90,23 @@ class SuiteBench:
     """Run a benchmark suite (configs/bench/*.yaml: scenes x methods x step budgets x seeds) through nerfstudio's
     trainer; writes results.csv, results.md and PNG plots into --out. Finished runs are kept in <out>/runs/ and
     skipped when the suite runs again (an interrupted suite resumes). `gsmsdr-bench --quick` = `suite --config
-    quick`. See gsmsdr_ns/bench/suite.py."""
+    quick`. `--publish docs/results/<suite>` also copies results.md, results.csv and the plots into the
+    repository's results folder. See gsmsdr_ns/bench/suite.py."""
 
     config: str = "quick"
-    """Suite YAML file, or the name of one in configs/bench/ (quick, full, ablations)."""
+    """Suite YAML file, or the name of a packaged one in configs/bench/ (quick, full, ablations, ...)."""
     out: Optional[Path] = None
-    """Output folder (default: bench-results/<suite name>)."""
+    """Output folder: runs/, scenes/ and the results (default: bench-results/<suite name>)."""
+    publish: Optional[Path] = None
+    """Also copy results.md, results.csv and the plots into this folder (e.g. docs/results/quick) at the end."""
     threads: Optional[int] = None
     """torch intra-op threads, overriding the suite's `threads` (0: torch's default)."""
     plots: bool = True
     """Write the PNG plots."""
     progress: bool = True
     """Show progress bars."""
+    interrupt_after: Optional[int] = None
+    """Stop as Ctrl-C would (SIGINT to this process) after this many trained runs; the suite resumes on a rerun."""
 
     def main(self) -> None:
         import shlex
@@ -111,7 +116,9 @@ class SuiteBench:
 
         # nerfstudio's camera utilities use torch.jit.script, which torch >= 2.10 reports as deprecated on import
         warnings.filterwarnings("ignore", message=".*torch.jit.script.*", category=FutureWarning)
-        from gsmsdr_ns.bench.suite import SuiteConfigError, find_suite_file, load_suite, main_tables, run_suite
+        from gsmsdr_ns.bench.report import main_tables, publish_outputs
+        from gsmsdr_ns.bench.runner import run_suite
+        from gsmsdr_ns.bench.suite_config import SuiteConfigError, find_suite_file, load_suite
 
         try:
             suite = load_suite(find_suite_file(self.config))
@@ -124,13 +131,16 @@ class SuiteBench:
         command = "gsmsdr-bench " + " ".join(shlex.quote(a) for a in _invocation_args())
         started = time.perf_counter()
         try:
-            outcome = run_suite(suite, out, command=command, progress=self.progress, plots=self.plots)
+            outcome = run_suite(suite, out, command=command, progress=self.progress, plots=self.plots,
+                                interrupt_after=self.interrupt_after)  # fmt: skip
         except KeyboardInterrupt:
             raise SystemExit(130) from None
         print(main_tables((out / "results.md").read_text(encoding="utf8")))
         print(f"suite {suite.name}: {len(outcome.trained)} runs trained, {len(outcome.reused)} reused, "
               f"{len(outcome.failed)} failed, {len(outcome.skipped)} skipped in {time.perf_counter() - started:.0f} s")
         print("wrote " + ", ".join(str(p) for p in outcome.outputs))
+        if self.publish is not None:
+            print("published " + ", ".join(str(p) for p in publish_outputs(out, self.publish)))
         if outcome.failed:
             raise SystemExit(1)
 

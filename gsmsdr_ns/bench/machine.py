@@ -1,0 +1,55 @@
+"""What a benchmark ran on: CPU, cores, torch version and threads, device, git commit."""
+
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+from pathlib import Path
+from typing import Any, Dict, Mapping
+
+
+def machine_info() -> Dict[str, Any]:
+    """CPU model and cores, torch version and threads, device, for the results header and every record."""
+    import torch
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf8") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    info = {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "device": device,
+        "gpu": torch.cuda.get_device_name(0) if device == "cuda" else None,
+        "python": platform.python_version(),
+        "platform": platform.platform(terse=True),
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+    }
+    try:
+        root = Path(__file__).resolve().parents[2]
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
+                                text=True, timeout=10).stdout.strip()  # fmt: skip
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10).stdout.strip()  # fmt: skip
+        info["git"] = (commit + ("+dirty" if dirty else "")) if commit else None
+    except (OSError, subprocess.SubprocessError):
+        info["git"] = None
+    return info
+
+
+def describe_machine(info: Mapping[str, Any]) -> str:
+    gpu = f" ({info['gpu']})" if info.get("gpu") else ""
+    return (f"{info['cpu']}, {info['cores']} cores; torch {info['torch']} ({info['torch_threads']} thread(s)), "
+            f"device {info['device']}{gpu}")  # fmt: skip
+
+
+__all__ = ["describe_machine", "machine_info"]

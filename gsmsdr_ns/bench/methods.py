@@ -1,0 +1,130 @@
+"""The bench's one method registry: what each suite method (a table row) trains.
+
+Every method is a preset of ``gsmsdr_ns.plugin.method_config`` (its *base*) with some ``BlurFieldConfig`` fields
+replaced:
+
+* base ``plain``: the ``gsmsdr`` preset with ``degradation sharp``, i.e. plain splatfacto Gaussians fitted straight
+  to the degraded training images (no blur field, no resolution model);
+* base ``gsmsdr`` / ``gsmsdr-lite``: those presets, ``degradation auto`` (per image from the scene's
+  ``degradation.json``);
+* base ``sharp``: ``plain`` trained on the *sharp* twin of the same scene (identical cameras and test views): the
+  upper bound a perfect deblurring method could reach with the same budget.
+
+Step-dependent schedules are not set here: the runner applies one :class:`gsmsdr_ns.plugin.schedule.TrainingSchedule`
+to every method.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, Optional, Tuple
+
+BASES = ("plain", "gsmsdr", "gsmsdr-lite", "sharp")
+"""Presets a method starts from (see the module docstring)."""
+
+
+def base_config(base: str, data: Path, output_dir: Path):
+    """The TrainerConfig of the preset ``base`` on ``data``: no viewer, no periodic evaluation or image logging,
+    CPU unless CUDA is there (schedules not yet shortened)."""
+    from gsmsdr_ns.plugin.method_config import gsmsdr_lite_trainer_config, gsmsdr_trainer_config
+
+    if base not in BASES:
+        raise ValueError(f"unknown base preset {base!r}; valid: {', '.join(BASES)}")
+    config = gsmsdr_lite_trainer_config() if base == "gsmsdr-lite" else gsmsdr_trainer_config()
+    if base in ("plain", "sharp"):
+        config.pipeline.model.degradation = "sharp"
+    config.data = Path(data)
+    config.pipeline.datamanager.data = Path(data)
+    config.output_dir = Path(output_dir)
+    config.vis = "tensorboard"
+    config.steps_per_eval_image = 0
+    config.steps_per_eval_all_images = 0
+    config.pipeline.model.viewer_blur_outputs = False  # evaluation renders rgb only (the metrics use rgb alone)
+    return config
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """How one suite method differs from its base preset."""
+
+    name: str
+    """Suite method name (``methods:`` of a suite file)."""
+    label: str
+    """Row label in the tables."""
+    base: str
+    """Base preset: plain / sharp (gsmsdr preset with degradation sharp), gsmsdr, gsmsdr-lite."""
+    blur_field: Tuple[Tuple[str, Any], ...] = ()
+    """``BlurFieldConfig`` fields replaced on the preset's blur field."""
+    sharp_data: bool = False
+    """Train on the sharp twin of the scene (the upper bound) instead of its degraded images."""
+    description: str = ""
+    """One line for humans."""
+
+    def make_config(self, data: Path, output_dir: Path):
+        """The TrainerConfig of this method on ``data`` (schedules not yet shortened)."""
+        config = base_config(self.base, data, output_dir)
+        if self.blur_field:
+            model = config.pipeline.model
+            model.blur_field = dataclasses.replace(model.blur_field, **dict(self.blur_field))
+        return config
+
+    @property
+    def has_blur_field(self) -> bool:
+        return self.base in ("gsmsdr", "gsmsdr-lite")
+
+    def modules(self) -> Optional[Dict[str, bool]]:
+        """Table 6's check marks (GAKA, SAFM, MCA, RGBD, HPKO) of the gsmsdr-preset blur field, None otherwise."""
+        if self.base in ("plain",):
+            return dict(GAKA=False, SAFM=False, MCA=False, RGBD=False, HPKO=False)
+        if self.base != "gsmsdr":
+            return None
+        from gsmsdr_ns.blur.field import BlurFieldConfig
+
+        mods = BlurFieldConfig(**dict(self.blur_field)).modules
+        return dict(GAKA=mods.gaka, SAFM=mods.safm, MCA=mods.mca, RGBD=mods.rgbd, HPKO=mods.hpko)
+
+
+def _method(name: str, label: str, base: str, description: str, sharp_data: bool = False, **blur) -> MethodSpec:
+    return MethodSpec(name, label, base, tuple(sorted(blur.items())), sharp_data, description)
+
+
+METHODS: Dict[str, MethodSpec] = {
+    m.name: m
+    for m in (
+        _method("plain", "plain (3DGS)", "plain", "plain Gaussians (degradation sharp) on the degraded images"),
+        _method("msd-only", "MSD-only", "gsmsdr", "HPKO heads on BAGS' plain CNN (no GAKA/SAFM/MCA)", mode="msd_only"),
+        _method("re-only", "RE-only", "gsmsdr", "MAAN features, one full-resolution kernel scale (no HPKO)",
+                mode="re_only"),  # fmt: skip
+        _method("full", "GS-MSDR (full)", "gsmsdr", "the gsmsdr preset: MAAN + HPKO, with per-view kernels"),
+        _method("-view", "-view kernels", "gsmsdr", "full without per-view kernels (the paper's blur field)",
+                view_kernels=False),  # fmt: skip
+        _method("view", "per-view kernels (mode view)", "gsmsdr",
+                "one kernel per training view (mask 1), no feature network (fast)", mode="view"),  # fmt: skip
+        _method("-gaka", "-GAKA", "gsmsdr", "full without Global-Aware Kernel Attention", gaka=False),
+        _method("-safm", "-SAFM", "gsmsdr", "full without the Spatial Adaptive Fusion Module", safm=False),
+        _method("-mca", "-MCA", "gsmsdr", "full without the Multi-modal Context Adapter", mca=False),
+        _method("-rgbd", "-RGBD", "gsmsdr", "full with an RGB-only feature network (no depth input)", rgbd=False),
+        _method("gsmsdr-lite", "gsmsdr-lite", "gsmsdr-lite", "the gsmsdr-lite preset (half-width blur field)"),
+        _method("sharp", "sharp (upper bound)", "sharp", "plain Gaussians on the sharp images of the same scene",
+                sharp_data=True),  # fmt: skip
+    )
+}
+"""Suite method names -> what they train. Order = row order of the tables."""
+
+TABLE7_METHODS = (("plain", "Baseline (plain)"), ("msd-only", "MSD-only"), ("re-only", "RE-only"),
+                  ("full", "GS-MSDR (full)"))  # fmt: skip
+"""Table 7 rows: baseline, multi-scale deblurring only, resolution enhancement only, both."""
+TABLE6_METHODS = ("plain", "msd-only", "-gaka", "-safm", "-mca", "-rgbd", "re-only", "full")
+"""Table 6 rows (module check marks); ``re-only`` is the paper's -HPKO row."""
+
+
+def method_spec(name: str) -> MethodSpec:
+    """The registered method ``name``; ValueError naming the valid names otherwise."""
+    if name not in METHODS:
+        raise ValueError(f"unknown method {name!r}; valid: {', '.join(METHODS)}")
+    return METHODS[name]
+
+
+__all__ = ["BASES", "METHODS", "MethodSpec", "TABLE6_METHODS", "TABLE7_METHODS", "base_config", "method_spec"]

@@ -1,0 +1,306 @@
+"""A suite's results from its run records: ``results.csv`` (one row per run), ``results.md`` (tables shaped like the
+paper's Tables 3-7 plus time and memory columns), the PNG plots (:mod:`gsmsdr_ns.bench.plots`), and publishing those
+files into a results folder such as ``docs/results/<suite>/``."""
+
+from __future__ import annotations
+
+import csv
+import datetime
+import io
+import math
+from pathlib import Path
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
+
+from gsmsdr_ns.bench.machine import describe_machine, machine_info
+from gsmsdr_ns.bench.methods import METHODS, TABLE6_METHODS, TABLE7_METHODS
+from gsmsdr_ns.bench.records import copy_file_atomic, write_text_atomic
+from gsmsdr_ns.bench.suite_config import Suite, schedule_settings
+from gsmsdr_ns.bench.timing import CATEGORIES
+
+CSV_FIELDS = ("suite", "scene", "method", "steps", "seed", "psnr", "ssim", "lpips", "train_seconds", "step_ms",
+              *(f"t_{c}" for c in CATEGORIES), "peak_rss_mb", "peak_cuda_mb", "num_gaussians", "eval_seconds",
+              "setup_seconds", "device", "torch_threads")  # fmt: skip
+
+
+def _num(value: Any, digits: int) -> str:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return ""
+    return "" if not math.isfinite(v) else f"{v:.{digits}f}"
+
+
+def write_csv(records: Sequence[Mapping[str, Any]], path: Path) -> None:
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(CSV_FIELDS)
+    for r in records:
+        b = r.get("breakdown", {})
+        m = r.get("machine", {})
+        writer.writerow([r["suite"], r["scene"], r["method"], r["steps"], r["seed"], _num(r["psnr"], 4),
+                         _num(r["ssim"], 5), _num(r["lpips"], 5), _num(r["train_seconds"], 2), _num(r["step_ms"], 2),
+                         *(_num(b.get(c, float("nan")), 3) for c in CATEGORIES), _num(r["peak_rss_mb"], 1),
+                         _num(r["peak_cuda_mb"], 1), r["num_gaussians"], _num(r["eval_seconds"], 2),
+                         _num(r["setup_seconds"], 2), m.get("device", ""), m.get("torch_threads", "")])  # fmt: skip
+    write_text_atomic(path, buffer.getvalue())
+
+
+def _mean(values: Sequence[float]) -> float:
+    finite = [float(v) for v in values if v is not None and math.isfinite(float(v))]
+    return sum(finite) / len(finite) if finite else float("nan")
+
+
+def aggregate(records: Sequence[Mapping[str, Any]]) -> Dict[Tuple[int, str, str], Dict[str, Any]]:
+    """Seed means per (steps, scene, method): the metrics, times, memory, Gaussians and the breakdown."""
+    groups: Dict[Tuple[int, str, str], List[Mapping[str, Any]]] = {}
+    for r in records:
+        groups.setdefault((r["steps"], r["scene"], r["method"]), []).append(r)
+    out = {}
+    for k, rs in groups.items():
+        row: Dict[str, Any] = {"seeds": len(rs)}
+        for name in ("psnr", "ssim", "lpips", "train_seconds", "step_ms", "peak_rss_mb", "peak_cuda_mb",
+                     "num_gaussians", "eval_seconds"):  # fmt: skip
+            row[name] = _mean([r.get(name, float("nan")) for r in rs])
+        row["breakdown"] = {c: _mean([r.get("breakdown", {}).get(c, float("nan")) for r in rs]) for c in CATEGORIES}
+        split = [r.get("breakdown_split") for r in rs if r.get("breakdown_split")]
+        row["backward"] = {c: _mean([s["backward"].get(c, float("nan")) for s in split]) for c in CATEGORIES[:-1]}
+        out[k] = row
+    return out
+
+
+def _f(value: Any, digits: int = 2) -> str:
+    s = _num(value, digits)
+    return s if s else "-"
+
+
+def format_markdown(
+    suite: Suite,
+    records: Sequence[Mapping[str, Any]],
+    command: str = "",
+    machine: Optional[Mapping[str, Any]] = None,
+    skipped: Optional[Mapping[str, str]] = None,
+    failed: Optional[Mapping[str, str]] = None,
+) -> str:
+    """results.md: header, per-scene tables (Tables 3-5), Table 7, Table 6, time breakdown, gaps."""
+    machine = machine or machine_info()
+    agg = aggregate(records)
+    expected = len(suite.runs()) - len(skipped or {})
+    now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    lines = [f"# Benchmark suite `{suite.name}`", ""]
+    lines.append(f"- date: {now}")
+    lines.append(f"- machine: {describe_machine(machine)}; {machine.get('platform', '')}, Python "
+                 f"{machine.get('python', '')}, git {machine.get('git') or '-'}")  # fmt: skip
+    others = sorted({describe_machine(r["machine"]) for r in records if r.get("machine")} - {describe_machine(machine)})
+    if others:
+        lines.append(f"- some records were measured on: {'; '.join(others)}")
+    if command:
+        lines.append(f"- command: `{command}`")
+    lines.append(f"- suite: `{_display_path(suite.source)}`" + (f": {suite.description}" if suite.description else ""))
+    lines.append(f"- runs: {len(records)} of {expected} finished"
+                 + (f", {len(failed)} failed" if failed else "")
+                 + (f", {len(skipped)} skipped" if skipped else ""))  # fmt: skip
+    for scene in suite.scenes:
+        lines.append(f"- scene `{scene.name}`: {scene.describe()}")
+    sched = ", ".join(f"{k} {v}" for k, v in schedule_settings(suite.schedule_for(1)).items() if k != "steps")
+    lines.append(f"- budgets: {', '.join(map(str, suite.steps))} steps; seeds {', '.join(map(str, suite.seeds))}"
+                 f" (tables show seed means); every method gets the same shortened schedule ({sched})")  # fmt: skip
+    lines.append("- metrics on the held-out sharp test views (sharp renders vs sharp ground truth): PSNR; SSIM from "
+                 "scikit-image (Gaussian window, sigma 1.5); LPIPS (AlexNet) only when its weights are cached, "
+                 "else `-`")  # fmt: skip
+    lines.append("- train s: training wall time without evaluation and set-up; ms/step = train s / steps; peak mem: "
+                 "peak resident memory of the process during the run (includes the Python/torch baseline)"
+                 + ("; peak CUDA: torch.cuda.max_memory_allocated" if machine.get("device") == "cuda" else "")
+                 )  # fmt: skip
+    lines.append("")
+
+    show_cuda = any(math.isfinite(row["peak_cuda_mb"]) for row in agg.values())
+    multi_seed = len(suite.seeds) > 1
+    for steps in suite.steps:
+        suffix = f", {steps} steps"
+        lines.append(f"## Per scene{suffix} (the paper's Tables 3-5)")
+        lines.append("")
+        for scene in suite.scenes:
+            rows = [(m, agg.get((steps, scene.name, m))) for m in suite.methods]
+            rows = [(m, r) for m, r in rows if r is not None]
+            if not rows:
+                continue
+            lines.append(f"### {scene.name}")
+            lines.append("")
+            head = ["method", "PSNR", "SSIM", "LPIPS", "train s", "ms/step", "peak mem MB"]
+            head += ["peak CUDA MB"] if show_cuda else []
+            head += ["Gaussians"] + (["seeds"] if multi_seed else [])
+            lines.append("| " + " | ".join(head) + " |")
+            lines.append("| --- | " + " | ".join("---:" for _ in head[1:]) + " |")
+            for m, r in rows:
+                cells = [METHODS[m].label, _f(r["psnr"]), _f(r["ssim"], 4), _f(r["lpips"], 4),
+                         _f(r["train_seconds"], 0), _f(r["step_ms"], 0), _f(r["peak_rss_mb"], 0)]  # fmt: skip
+                cells += [_f(r["peak_cuda_mb"], 0)] if show_cuda else []
+                cells += [_f(r["num_gaussians"], 0)] + ([str(r["seeds"])] if multi_seed else [])
+                lines.append("| " + " | ".join(cells) + " |")
+            lines.append("")
+
+        scene_names = [s.name for s in suite.scenes]
+
+        def scene_cells(method: str) -> List[str]:
+            cells = []
+            for name in scene_names:
+                r = agg.get((steps, name, method))
+                cells += [_f(r["psnr"]) if r else "-", _f(r["ssim"], 4) if r else "-"]
+            return cells
+
+        header_pairs = " | ".join(f"{n} PSNR | {n} SSIM" for n in scene_names)
+        align = " | ".join("---: | ---:" for _ in scene_names)
+        t7 = [(m, label) for m, label in TABLE7_METHODS if m in suite.methods]
+        if sum(m != "plain" for m, _ in t7) >= 2:
+            lines += [f"## Table 7{suffix}: multi-scale deblurring vs resolution enhancement", ""]
+            lines.append(f"| configuration | {header_pairs} |")
+            lines.append(f"| --- | {align} |")
+            for m, label in t7:
+                lines.append(f"| {label} | " + " | ".join(scene_cells(m)) + " |")
+            lines.append("")
+        t6 = [m for m in TABLE6_METHODS if m in suite.methods]
+        if sum(m not in ("plain", "full", "msd-only") for m in t6) >= 1:
+            lines += [f"## Table 6{suffix}: module ablation (✓ present, ✗ removed; RE-only = -HPKO)", ""]
+            lines.append(f"| GAKA | SAFM | MCA | RGBD | HPKO | method | {header_pairs} |")
+            lines.append(f"| :-: | :-: | :-: | :-: | :-: | --- | {align} |")
+            for m in t6:
+                mods = METHODS[m].modules() or {}
+                marks = " | ".join("✓" if mods.get(k) else "✗" for k in ("GAKA", "SAFM", "MCA", "RGBD", "HPKO"))
+                lines.append(f"| {marks} | {METHODS[m].label} | " + " | ".join(scene_cells(m)) + " |")
+            lines.append("")
+
+        lines += [f"## Time breakdown{suffix} (seconds of training, forward + backward)", ""]
+        names = {"rasterization": "raster", "blur_field": "blur field", "kernels": "kernels", "densification":
+                 "densify", "data": "data", "other": "other"}  # fmt: skip
+        lines.append("| scene | method | " + " | ".join(names[c] for c in CATEGORIES)
+                     + " | total | of which backward (raster / blur field / kernels) |")  # fmt: skip
+        lines.append("| --- | --- | " + " | ".join("---:" for _ in CATEGORIES) + " | ---: | ---: |")
+        for scene in suite.scenes:
+            for m in suite.methods:
+                r = agg.get((steps, scene.name, m))
+                if r is None:
+                    continue
+                b, bw = r["breakdown"], r["backward"]
+                back = " / ".join(_f(bw.get(c), 1) for c in ("rasterization", "blur_field", "kernels"))
+                lines.append(f"| {scene.name} | {METHODS[m].label} | "
+                             + " | ".join(_f(b[c], 1) for c in CATEGORIES)
+                             + f" | {_f(r['train_seconds'], 1)} | {back} |")  # fmt: skip
+        lines.append("")
+        lines.append("raster: `_rasterize` (activation, projection, SH, tiles, pixel kernel); blur field: kernel and "
+                     "mask prediction (MAAN, MCA, HPKO heads, thin lens); kernels: kernel application "
+                     "(`BlurField.blur`) and the resolution-loss model; densify: the strategy's pre/post-backward "
+                     "hooks; data: `next_train`; other: the rest of the step (mask blend, losses and their backward, "
+                     "composite, optimizer and scheduler steps, callbacks). Backward time is attributed by gradient-hook event times "
+                     "at component boundaries (see `gsmsdr_ns/bench/timing.py`).")  # fmt: skip
+        lines.append("")
+
+        gap_rows = []
+        for scene in suite.scenes:
+            plain, sharp = agg.get((steps, scene.name, "plain")), agg.get((steps, scene.name, "sharp"))
+            if plain and sharp:
+                gap_rows.append(f"| {scene.name} | {METHODS['plain'].label} | 0.00 | 0.0000 | "
+                                f"{_sign(sharp['psnr'] - plain['psnr'])} |")  # fmt: skip
+            for m in suite.methods:
+                if m in ("plain", "sharp"):
+                    continue
+                r = agg.get((steps, scene.name, m))
+                if r is None or (plain is None and sharp is None):
+                    continue
+                d_plain = r["psnr"] - plain["psnr"] if plain else float("nan")
+                d_sharp = sharp["psnr"] - r["psnr"] if sharp else float("nan")
+                s_plain = r["ssim"] - plain["ssim"] if plain else float("nan")
+                gap_rows.append(f"| {scene.name} | {METHODS[m].label} | {_sign(d_plain)} | {_sign(s_plain, 4)} "
+                                f"| {_sign(d_sharp)} |")  # fmt: skip
+        if gap_rows:
+            lines += [f"## Gaps{suffix} (test PSNR in dB, SSIM)", ""]
+            lines.append("| scene | method | PSNR: method - plain | SSIM: method - plain | PSNR: sharp - method |")
+            lines.append("| --- | --- | ---: | ---: | ---: |")
+            lines += gap_rows
+            lines.append("")
+
+    if failed:
+        lines += ["## Failed runs", ""] + [f"- `{k}`: {v} (log: `runs/{k}.log`)" for k, v in failed.items()] + [""]
+    if skipped:
+        lines += ["## Skipped runs", ""] + [f"- `{k}`: {v}" for k, v in skipped.items()] + [""]
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def _display_path(path: Optional[Path]) -> str:
+    """``path`` relative to the working directory when it is inside it."""
+    if path is None:
+        return "-"
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
+
+
+def _sign(value: float, digits: int = 2) -> str:
+    return "-" if not math.isfinite(value) else f"{value:+.{digits}f}"
+
+
+def write_outputs(
+    suite: Suite,
+    out: Path,
+    command: str = "",
+    machine: Optional[Mapping[str, Any]] = None,
+    skipped: Optional[Mapping[str, str]] = None,
+    failed: Optional[Mapping[str, str]] = None,
+    plots: bool = True,
+    records: Optional[Sequence[Mapping[str, Any]]] = None,
+) -> List[Path]:
+    """Regenerate results.csv, results.md and the PNG plots from ``records`` (default: the suite's finished records
+    in ``out/runs``)."""
+    out = Path(out)
+    if records is None:
+        from gsmsdr_ns.bench.runner import collect_records
+
+        records = collect_records(suite, out)
+    write_csv(records, out / "results.csv")
+    write_text_atomic(out / "results.md", format_markdown(suite, records, command, machine, skipped, failed))
+    written = [out / "results.csv", out / "results.md"]
+    if plots and records:
+        from gsmsdr_ns.bench.plots import plot_psnr_vs_time, plot_time_breakdown
+
+        labels = {name: spec.label for name, spec in METHODS.items()}
+        for scene in suite.scenes:
+            scene_records = [r for r in records if r["scene"] == scene.name]
+            if scene_records:
+                references = [name for name, spec in METHODS.items() if spec.sharp_data]
+                written.append(plot_psnr_vs_time(scene_records, out / f"psnr_vs_time_{scene.name}.png", scene.name,
+                                                 labels, references))  # fmt: skip
+        written.append(plot_time_breakdown(records, out / "time_breakdown.png", labels))
+    return written
+
+
+def main_tables(markdown: str) -> str:
+    """The part of results.md to print at the end: from the first table section to the time breakdown."""
+    start = markdown.find("## ")
+    return markdown[start:] if start >= 0 else markdown
+
+
+PUBLISHED = ("results.md", "results.csv", "*.png")
+"""The outputs a results folder gets (not ``runs/`` or ``scenes/``)."""
+
+
+def publish_outputs(out: Path, folder: Path) -> List[Path]:
+    """Copy results.md, results.csv and the PNG plots of the output folder ``out`` into ``folder`` (e.g.
+    ``docs/results/quick``), each written atomically; returns the copies."""
+    out, folder = Path(out), Path(folder)
+    if folder.resolve() == out.resolve():
+        return []
+    sources = [p for pattern in PUBLISHED for p in sorted(out.glob(pattern)) if p.is_file()]
+    if not sources:
+        raise FileNotFoundError(f"{out} has no results.md, results.csv or plots to publish")
+    return [copy_file_atomic(p, folder / p.name) for p in sources]
+
+
+__all__ = [
+    "CSV_FIELDS",
+    "aggregate",
+    "format_markdown",
+    "main_tables",
+    "publish_outputs",
+    "write_csv",
+    "write_outputs",
+]

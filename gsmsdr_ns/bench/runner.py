@@ -1,0 +1,320 @@
+"""Running a suite: every run trains in this process (:class:`gsmsdr_ns.bench.training.InProcessRun`) with the
+suite's :class:`gsmsdr_ns.plugin.schedule.TrainingSchedule` for its step budget, is evaluated every ``eval_every``
+steps (and at step 0 and the last step) by :func:`gsmsdr_ns.bench.evaluation.evaluate_test_views`, and its training
+time is split into rasterization / blur field / kernel application / densification / data / other
+(:class:`gsmsdr_ns.bench.timing.TimingRecorder`). Evaluation time is not training time.
+
+In the output folder:
+
+* ``runs/<scene>__<method>__<steps>__s<seed>.json``: one record per finished run, written atomically when the run
+  ends; ``runs/<same>.log``: what the run printed. A rerun of the suite skips every run whose record exists and
+  matches the run's settings (:func:`fingerprint`), so an interrupted suite resumes where it stopped (the run that
+  was interrupted starts over);
+* ``results.csv``, ``results.md`` and the plots (:mod:`gsmsdr_ns.bench.report`), regenerated after every run;
+* ``scenes/``: the generated scenes (made once, reused).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import datetime
+import hashlib
+import json
+import signal
+import sys
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional
+
+from gsmsdr_ns.bench.evaluation import evaluate_test_views, make_lpips
+from gsmsdr_ns.bench.machine import machine_info
+from gsmsdr_ns.bench.methods import METHODS, MethodSpec
+from gsmsdr_ns.bench.records import load_record, write_json_atomic
+from gsmsdr_ns.bench.report import write_outputs
+from gsmsdr_ns.bench.suite_config import RunKey, Suite, schedule_settings
+
+RECORD_VERSION = 1
+"""Bumped when a record's meaning changes: older records are then rerun instead of reused."""
+
+
+def preset_fingerprint(method: MethodSpec) -> str:
+    """The resolved model and optimizer settings of ``method`` (its preset with its changes applied), so a record
+    made before a preset default changed is rerun. Paths are left out, and so are the blur field's settings for
+    methods that never build it (plain, sharp)."""
+    config = method.make_config(Path("data"), Path("outputs"))
+    model, optimizers = config.pipeline.model, dict(config.optimizers)
+    if not method.has_blur_field:
+        model = copy.copy(model)
+        model.blur_field = None
+        optimizers = {k: v for k, v in optimizers.items() if not k.startswith("blur_")}
+    return repr(model) + repr(sorted(optimizers.items()))
+
+
+def fingerprint(suite: Suite, key: RunKey) -> str:
+    """What a record's numbers depend on; a record whose fingerprint differs is rerun."""
+    method = METHODS[key.method]
+    payload = {
+        "version": RECORD_VERSION,
+        "scene": suite.scene(key.scene).fingerprint(),
+        "method": {"base": method.base, "blur_field": method.blur_field, "sharp_data": method.sharp_data},
+        "preset": preset_fingerprint(method),
+        "steps": key.steps,
+        "seed": key.seed,
+        "schedule": schedule_settings(suite.schedule_for(key.steps)),
+        "eval_steps": suite.eval_steps(key.steps),
+        "lpips": suite.lpips,
+    }
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+
+def train_and_record(
+    suite: Suite,
+    key: RunKey,
+    scene_root: Path,
+    work_dir: Path,
+    lpips=None,
+    on_step: Optional[Callable[[int], None]] = None,
+    on_eval: Optional[Callable[[Dict[str, Any]], None]] = None,
+    log: Optional[Callable[[str], None]] = None,
+) -> Dict[str, Any]:
+    """Train one run of ``suite`` and return its record (not written). ``on_step(n)`` after every n steps."""
+    import torch
+
+    from gsmsdr_ns.bench.timing import PeakMemory, TimingRecorder
+    from gsmsdr_ns.bench.training import InProcessRun
+
+    method = METHODS[key.method]
+    scene = suite.scene(key.scene)
+    data = scene.data(method, scene_root, log)
+    config = method.make_config(data, work_dir)
+    config.experiment_name = key.id
+    suite.schedule_for(key.steps).apply(config)
+
+    memory = PeakMemory()
+    memory.reset()
+    started = time.perf_counter()
+    run = InProcessRun(config, seed=key.seed)
+    setup_seconds = time.perf_counter() - started
+    device = str(run.trainer.device)
+    recorder = TimingRecorder(sync_cuda=device.startswith("cuda")).attach(run.pipeline)
+    curve: List[Dict[str, Any]] = []
+    eval_seconds = 0.0
+    try:
+        eval_steps = suite.eval_steps(key.steps)
+        for target in eval_steps:
+            while run.step < target:
+                with recorder.measure():
+                    run.train(1)
+                if on_step is not None:
+                    on_step(1)
+            t0 = time.perf_counter()
+            metrics = evaluate_test_views(run, lpips)
+            eval_seconds += time.perf_counter() - t0
+            point = {"step": run.step, "seconds": recorder.wall, **metrics,
+                     "num_gaussians": int(run.model.num_points), "breakdown": recorder.totals()}  # fmt: skip
+            curve.append(point)
+            if on_eval is not None:
+                on_eval(point)
+        final = curve[-1]
+        record = {
+            "version": RECORD_VERSION,
+            "id": key.id,
+            "suite": suite.name,
+            "scene": key.scene,
+            "method": key.method,
+            "steps": key.steps,
+            "seed": key.seed,
+            "fingerprint": fingerprint(suite, key),
+            "data": str(data),
+            "psnr": final["psnr"],
+            "ssim": final["ssim"],
+            "lpips": final["lpips"],
+            "train_seconds": recorder.wall,
+            "step_ms": 1000.0 * recorder.wall / max(key.steps, 1),
+            "setup_seconds": setup_seconds,
+            "eval_seconds": eval_seconds,
+            "num_gaussians": final["num_gaussians"],
+            "num_test_views": final["num_views"],
+            "peak_rss_mb": memory.peak_rss_mb(),
+            "peak_rss_span": memory.span_reset,
+            "peak_cuda_mb": memory.peak_cuda_mb(),
+            "breakdown": recorder.totals(),
+            "breakdown_split": recorder.split(),
+            "blur_field_modules": _active_modules(run.model),
+            "curve": curve,
+            "machine": machine_info(),
+            "finished": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        }
+    finally:
+        recorder.detach()
+        run.close()
+        if torch.cuda.is_available():
+            torch.cuda.empty_cache()
+    return record
+
+
+def _active_modules(model) -> str:
+    """What the model built (e.g. "blur field (full, RGB-D, kernels (5, 9, 17))"), from its own description."""
+    describe = getattr(model, "_describe_modules", None)
+    try:
+        return str(describe()) if describe is not None else ""
+    except Exception:  # noqa: BLE001 - informative only
+        return ""
+
+
+# -- the suite ---------------------------------------------------------------------------------------------------
+
+
+def record_path(out: Path, key: RunKey) -> Path:
+    return Path(out) / "runs" / f"{key.id}.json"
+
+
+def finished_record(suite: Suite, out: Path, key: RunKey) -> Optional[Dict[str, Any]]:
+    """The run's record if it exists and matches the run's current settings."""
+    record = load_record(record_path(out, key))
+    if record is None or record.get("fingerprint") != fingerprint(suite, key):
+        return None
+    return record
+
+
+@dataclass
+class SuiteOutcome:
+    records: List[Dict[str, Any]]
+    trained: List[str]
+    reused: List[str]
+    failed: Dict[str, str]
+    skipped: Dict[str, str]
+    outputs: List[Path]
+
+
+def run_suite(
+    suite: Suite,
+    out: Path,
+    command: str = "",
+    progress: bool = True,
+    plots: bool = True,
+    console=None,
+    interrupt_after: Optional[int] = None,
+) -> SuiteOutcome:
+    """Run every run of ``suite`` that has no matching record in ``out/runs``; rewrite the outputs after each.
+
+    ``interrupt_after``: after that many runs were trained (and their outputs written), send this process SIGINT,
+    as Ctrl-C would: the interrupted suite then stops the same way (KeyboardInterrupt, finished records kept), at a
+    point that does not depend on timing."""
+    import torch
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import TimeRemainingColumn
+
+    out = Path(out)
+    (out / "runs").mkdir(parents=True, exist_ok=True)
+    scene_root = suite.scene_root if suite.scene_root is not None else out
+    if suite.threads > 0:
+        torch.set_num_threads(suite.threads)
+    console = console or Console(file=sys.stdout)
+    machine = machine_info()
+
+    keys = suite.runs()
+    skipped: Dict[str, str] = {}
+    todo: List[RunKey] = []
+    reused: List[str] = []
+    for key in keys:
+        scene, method = suite.scene(key.scene), METHODS[key.method]
+        if not scene.supports(method):
+            skipped[key.id] = f"scene {scene.name} has no sharp_path for the sharp upper bound"
+        elif finished_record(suite, out, key) is not None:
+            reused.append(key.id)
+        else:
+            todo.append(key)
+    lpips = None
+    if suite.lpips and todo:
+        lpips = make_lpips("cuda" if torch.cuda.is_available() else "cpu")
+    if suite.lpips and lpips is None and todo:
+        console.print("[yellow]LPIPS: torchvision's AlexNet weights are not in the torch hub cache; LPIPS is left out "
+                      "(nothing is downloaded)[/yellow]")  # fmt: skip
+
+    console.print(f"suite [bold]{suite.name}[/bold]: {len(keys)} runs ({len(reused)} already finished, "
+                  f"{len(todo)} to train, {len(skipped)} skipped) -> {out}")  # fmt: skip
+    trained: List[str] = []
+    failed: Dict[str, str] = {}
+    outputs: List[Path] = []
+
+    def refresh() -> None:
+        nonlocal outputs
+        outputs = write_outputs(suite, out, command, machine, skipped, failed, plots=plots)
+
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+               TextColumn("eta"), TimeRemainingColumn(), TextColumn("{task.fields[info]}"))  # fmt: skip
+    current = ""
+    try:
+        with Progress(*columns, console=console, disable=not progress, redirect_stdout=False,
+                      redirect_stderr=False) as bars:  # fmt: skip
+            suite_task = bars.add_task(f"{suite.name}", total=len(keys), completed=len(keys) - len(todo), info="")
+            for key in todo:
+                current = key.id
+                run_task = bars.add_task(f"  {key.scene} {key.method} s{key.seed}", total=key.steps, info="")
+
+                def on_eval(point: Dict[str, Any], task=run_task) -> None:
+                    bars.update(task, info=f"PSNR {point['psnr']:.2f} @ {point['step']}")
+
+                log_path = out / "runs" / f"{key.id}.log"
+                started = time.perf_counter()
+                try:
+                    with open(log_path, "w", encoding="utf8") as log_file, contextlib.redirect_stdout(log_file), \
+                            contextlib.redirect_stderr(log_file):  # fmt: skip
+                        record = train_and_record(
+                            suite, key, scene_root, out / "runs" / "nerfstudio", lpips,
+                            on_step=lambda n, task=run_task: bars.advance(task, n), on_eval=on_eval,
+                            log=lambda message: print(message, flush=True),
+                        )  # fmt: skip
+                    write_json_atomic(record_path(out, key), record)
+                    trained.append(key.id)
+                    console.print(f"{key.id}: PSNR {record['psnr']:.2f}  SSIM {record['ssim']:.4f}  train "
+                                  f"{record['train_seconds']:.0f} s ({record['step_ms']:.0f} ms/step)")  # fmt: skip
+                except Exception as e:  # noqa: BLE001 - one failed run does not stop the suite
+                    with open(log_path, "a", encoding="utf8") as log_file:
+                        log_file.write(traceback.format_exc())
+                    failed[key.id] = f"{type(e).__name__}: {e}"
+                    console.print(f"[red]{key.id} failed after {time.perf_counter() - started:.0f} s: "
+                                  f"{type(e).__name__}: {e} (log: {log_path})[/red]")  # fmt: skip
+                finally:
+                    bars.remove_task(run_task)
+                current = f"writing the outputs after {key.id}"
+                bars.advance(suite_task, 1)
+                refresh()
+                if interrupt_after is not None and len(trained) + len(failed) >= interrupt_after:
+                    signal.raise_signal(signal.SIGINT)
+    except KeyboardInterrupt:
+        console.print(f"[red]interrupted ({current or 'before the first run'}); {len(trained) + len(reused)} "
+                      "finished runs are kept in runs/: run the same command again to resume[/red]")  # fmt: skip
+        raise
+    refresh()
+    records = collect_records(suite, out)
+    return SuiteOutcome(records, trained, reused, failed, skipped, outputs)
+
+
+def collect_records(suite: Suite, out: Path) -> List[Dict[str, Any]]:
+    """The suite's finished records in ``out/runs`` (current settings only), in the suite's run order."""
+    records = []
+    for key in suite.runs():
+        record = finished_record(suite, out, key)
+        if record is not None:
+            records.append(record)
+    return records
+
+
+__all__ = [
+    "RECORD_VERSION",
+    "SuiteOutcome",
+    "collect_records",
+    "fingerprint",
+    "finished_record",
+    "preset_fingerprint",
+    "record_path",
+    "run_suite",
+    "train_and_record",
+]

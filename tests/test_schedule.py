@@ -1,0 +1,81 @@
+"""The one training schedule (``gsmsdr_ns.plugin.schedule.TrainingSchedule``): its bench and demo presets set the
+step-dependent settings of a real gsmsdr TrainerConfig to the values the bench suites and the demo have always used,
+and the demo's config is exactly the demo preset applied to the gsmsdr-lite preset."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from gsmsdr_ns.demo import demo_trainer_config
+from gsmsdr_ns.plugin.method_config import LITE_MAX_STEPS, gsmsdr_lite_trainer_config, gsmsdr_trainer_config
+from gsmsdr_ns.plugin.schedule import TrainingSchedule
+
+
+def _settings(config) -> dict:
+    model = config.pipeline.model
+    names = ("num_downscales", "resolution_schedule", "stop_split_at", "refine_every", "warmup_length",
+             "stop_screen_size_at", "reset_alpha_every", "densify_grad_thresh", "sh_degree_interval")  # fmt: skip
+    out = {name: getattr(model, name) for name in names}
+    out["blur_warmup"] = model.blur_field.warmup
+    out["max_num_iterations"] = config.max_num_iterations
+    out["steps_per_save"] = config.steps_per_save
+    for group in ("means", "camera_opt", "bilateral_grid"):
+        scheduler = config.optimizers[group]["scheduler"]
+        out[f"{group}_lr"] = (scheduler.max_steps, scheduler.warmup_steps)
+    return out
+
+
+def test_bench_preset_values() -> None:
+    config = gsmsdr_trainer_config()
+    TrainingSchedule.bench(1000).apply(config)
+    assert _settings(config) == dict(
+        num_downscales=1, resolution_schedule=500, stop_split_at=500, refine_every=33, warmup_length=33,
+        stop_screen_size_at=133, reset_alpha_every=10**6, densify_grad_thresh=0.002, sh_degree_interval=250,
+        blur_warmup=50, max_num_iterations=1000, steps_per_save=1000, means_lr=(1000, 0), camera_opt_lr=(1000, 100),
+        bilateral_grid_lr=(1000, 100),
+    )  # fmt: skip
+
+
+def test_demo_preset_values(tmp_path: Path) -> None:
+    config = demo_trainer_config(tmp_path, tmp_path / "out", 1500, "cpu")
+    preset = gsmsdr_lite_trainer_config()
+    assert _settings(config) == dict(
+        num_downscales=2, resolution_schedule=500, stop_split_at=750, refine_every=100, warmup_length=150,
+        stop_screen_size_at=preset.pipeline.model.stop_screen_size_at, reset_alpha_every=1000,
+        densify_grad_thresh=0.002, sh_degree_interval=375, blur_warmup=75, max_num_iterations=1500,
+        steps_per_save=1500, means_lr=(1500, 0), camera_opt_lr=(LITE_MAX_STEPS, 1000),
+        bilateral_grid_lr=(LITE_MAX_STEPS, 1000),
+    )  # fmt: skip
+    assert config.machine.device_type == "cpu" and config.experiment_name == "demo"
+
+
+@pytest.mark.parametrize("steps", [2, 7, 100, 999, 1000, 1500, 3001, 7000])
+def test_demo_config_is_the_demo_preset(tmp_path: Path, steps: int) -> None:
+    """Only the preset's fields separate the demo's schedule from the bench's: applying the demo preset to the
+    gsmsdr-lite preset gives the demo's model and optimizers."""
+    demo = demo_trainer_config(tmp_path, tmp_path / "out", steps, "auto")
+    config = gsmsdr_lite_trainer_config()
+    TrainingSchedule.demo(steps).apply(config)
+    assert repr(config.pipeline.model) == repr(demo.pipeline.model)
+    assert repr(sorted(config.optimizers.items())) == repr(sorted(demo.optimizers.items()))
+    bench = gsmsdr_lite_trainer_config()
+    TrainingSchedule.bench(steps).apply(bench)
+    if steps >= 30:
+        assert repr(bench.pipeline.model) != repr(demo.pipeline.model)
+
+
+@pytest.mark.parametrize(
+    "kwargs,message",
+    [
+        (dict(steps=0), "steps"),
+        (dict(steps=10, refinements=0), "refinements"),
+        (dict(steps=10, resolution_fraction=1.5), "resolution_fraction"),
+        (dict(steps=10, densify_warmup_fraction=-0.1), "densify_warmup_fraction"),
+        (dict(steps=10, num_downscales=-1), "num_downscales"),
+    ],
+)
+def test_invalid_schedule_names_the_field(kwargs: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        TrainingSchedule(**kwargs)
