@@ -41,7 +41,7 @@ TEST_PSNR_MARGIN_DB = 0.2
 TEST_SSIM_MARGIN = 0.02
 
 TINY_SPEC = SceneSpec("motion-strong", width=64, height=48, num_views=8, hold=4, num_points=400)
-TINY_SCHEDULE = Schedule(20, num_downscales=1, refinements=4)
+TINY_SCHEDULE = TrainingSchedule.bench(20, num_downscales=1, refinements=4)
 
 
 @pytest.fixture(scope="module")

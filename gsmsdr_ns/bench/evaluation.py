@@ -24,7 +24,7 @@ from typing import Any, Dict, Optional
 
 def make_lpips(device) -> Optional[Any]:
     """torchmetrics' LPIPS (AlexNet) when its backbone weights are in the torch hub cache, else None."""
-    from gsmsdr_ns.plugin.model import lpips_backbone_cache_path
+    from gsmsdr_ns.plugin.lpips import lpips_backbone_cache_path
 
     if not lpips_backbone_cache_path().is_file():
         return None

@@ -1,14 +1,15 @@
-"""The bench's file I/O in one place: atomic JSON / text / file writes (temporary file in the same folder, then
-rename), run records, and reading YAML mappings."""
+"""The bench's records: run records as standard JSON, written and copied with ``gsmsdr_ns.io.atomic``."""
 
 from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
 from pathlib import Path
-from typing import Any, Callable, Dict, Optional
+from typing import Any, Dict, Optional
+
+from gsmsdr_ns.io import atomic
+from gsmsdr_ns.io.atomic import write_text_atomic
 
 
 def _finite_or_none(value: Any) -> Any:
@@ -30,54 +31,14 @@ def _json_default(value: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
-def _temporary(path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
-
-
-def write_json_atomic(path: Path, payload: Any) -> None:
-    """Write ``payload`` as JSON to a temporary file in the same folder, then rename it into place."""
-    path = Path(path)
-    tmp = _temporary(path)
-    with open(tmp, "w", encoding="utf8") as f:
-        json.dump(_finite_or_none(payload), f, indent=1, default=_json_default, allow_nan=False)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write ``text`` (UTF-8) to a temporary file in the same folder, then rename it into place."""
-    path = Path(path)
-    tmp = _temporary(path)
-    tmp.write_text(text, encoding="utf8")
-    os.replace(tmp, path)
+def write_json_atomic(path: Path, payload: Any) -> Path:
+    """A run record or other payload as standard JSON (NaN and infinity become null), written atomically."""
+    return atomic.write_json_atomic(path, _finite_or_none(payload), default=_json_default, allow_nan=False)
 
 
 def copy_file_atomic(source: Path, path: Path) -> Path:
-    """Copy ``source`` to a temporary file beside ``path``, then rename it into place."""
-    path = Path(path)
-    tmp = _temporary(path)
-    shutil.copyfile(source, tmp)
-    os.replace(tmp, path)
-    return path
-
-
-def load_yaml_mapping(source: Path, error: Callable[[str], Exception], what: str = "file") -> Dict[str, Any]:
-    """The YAML mapping in ``source``; raises ``error(message)`` (the message starts with the path) when the ``what``
-    is missing, not YAML or not a mapping."""
-    import yaml
-
-    source = Path(source)
-    if not source.is_file():
-        raise error(f"{source}: {what} not found")
-    try:
-        values = yaml.safe_load(source.read_text(encoding="utf8"))
-    except yaml.YAMLError as e:
-        raise error(f"{source}: not valid YAML: {e}") from e
-    if not isinstance(values, dict):
-        raise error(f"{source}: must be a YAML mapping, got {type(values).__name__}")
-    return values
+    """Copy ``source`` to ``path`` atomically (a temporary sibling, then a rename)."""
+    return atomic.write_file_atomic(path, lambda tmp: shutil.copyfile(source, tmp))
 
 
 def load_record(path: Path) -> Optional[Dict[str, Any]]:
@@ -90,4 +51,4 @@ def load_record(path: Path) -> Optional[Dict[str, Any]]:
     return record if isinstance(record, dict) and "id" in record else None
 
 
-__all__ = ["copy_file_atomic", "load_record", "load_yaml_mapping", "write_json_atomic", "write_text_atomic"]
+__all__ = ["copy_file_atomic", "load_record", "write_json_atomic", "write_text_atomic"]

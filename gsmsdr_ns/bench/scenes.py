@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
-import os
 import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional
+
+from gsmsdr_ns.io.atomic import replace_dir, temp_sibling_dir
 
 SCENE_DATA_VERSION = 2
 """Bumped when generated scenes change for the same spec (2: motion sub-frames rendered with the scene's own
@@ -65,16 +65,11 @@ def ensure_scene(bench_dir: Path, spec: SceneSpec, log: Optional[Callable[[str],
         log(f"accuracy: generating {out}")
     # generated beside its final place, then renamed: a suite running in parallel never sees half a scene, and two
     # processes generating the same scene both end up with one complete copy
-    partial = Path(tempfile.mkdtemp(prefix=f".{spec.name}.", dir=out.parent))
+    partial = temp_sibling_dir(out)
     try:
         generate_variant(partial, scene, spec.variant, hold=spec.hold, overwrite=True)
-        if out.exists() and not complete(out):
-            shutil.rmtree(out)  # left by an interrupted run of an older version
-        try:
-            os.rename(partial, out)
-        except OSError:
-            if not complete(out):
-                raise
+        if not complete(out):  # another process may have finished the same scene meanwhile: keep its copy
+            replace_dir(partial, out)  # also replaces a folder left by an interrupted run of an older version
     finally:
         shutil.rmtree(partial, ignore_errors=True)
     return out

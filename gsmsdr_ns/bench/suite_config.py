@@ -11,12 +11,13 @@ from pathlib import Path
 from typing import Any, Callable, Dict, List, Mapping, Optional
 
 from gsmsdr_ns.bench.methods import METHODS, MethodSpec
-from gsmsdr_ns.bench.records import load_yaml_mapping
 from gsmsdr_ns.bench.scenes import SceneSpec
+from gsmsdr_ns.io.config import read_yaml_mapping
+from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.plugin.schedule import TrainingSchedule
 
 
-class SuiteConfigError(ValueError):
+class SuiteConfigError(InputError):
     """A suite YAML file is invalid; the message names the file and the key."""
 
 
@@ -257,7 +258,10 @@ def _check_schedule(schedule: Any, source: Path) -> Dict[str, Any]:
 def load_suite(path: str | Path) -> Suite:
     """Read and validate a suite YAML file; errors are :class:`SuiteConfigError` naming the file and the key."""
     source = Path(path)
-    values = load_yaml_mapping(source, SuiteConfigError, what="suite file")
+    try:
+        values = read_yaml_mapping(source)
+    except InputError as err:
+        raise SuiteConfigError(str(err)) from err
     unknown = sorted(set(values) - _SUITE_KEYS)
     if unknown:
         raise _fail(source, unknown[0], f"unknown key; valid keys: {', '.join(sorted(_SUITE_KEYS))}")
