@@ -204,3 +204,21 @@ def test_mixed_resolution_photos_register_with_a_camera_per_size(tmp_path: Path)
         assert np.unique(cameras.intrinsics[group], axis=0).shape[0] == 1
     ratio = cameras.intrinsics[~large][0, 0] / cameras.intrinsics[large][0, 0]
     assert abs(ratio - 0.5) < 0.01
+
+
+def test_a_folder_of_photos_without_poses_is_told_how_to_get_them(tmp_path: Path):
+    """ns-train on plain photos (no poses): one error line naming the folder and the gsmsdr-process command."""
+    photos = tmp_path / "photos"
+    (photos / "images").mkdir(parents=True)
+    for name in ("image000.png", "image001.png", "image002.png"):
+        write_image(photos / "images" / name, read_image(FERN_IMAGES / name))
+    from gsmsdr_ns.io.errors import InputError
+
+    with pytest.raises(InputError, match=r"holds photos .* but no camera poses.*gsmsdr-process --images"):
+        detect_layout(photos)
+    proc = run_cli("ns-train", ["gsmsdr", "--data", photos, "--output-dir", tmp_path / "out", *TRAIN_FLAGS],
+                   cwd=tmp_path, timeout=600)  # fmt: skip
+    log = proc.stdout + proc.stderr
+    assert proc.returncode != 0
+    assert f"gsmsdr-process --images {photos / 'images'}" in log.replace("\n", ""), log[-3000:]
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*.ckpt"))

@@ -25,6 +25,7 @@ import numpy as np
 
 from gsmsdr_ns.io.colmap import has_colmap_model
 from gsmsdr_ns.io.errors import InputError, InputWarning
+from gsmsdr_ns.io.images import list_images
 
 HOLD_PREFIX = "hold="
 DEFAULT_HOLD = 8
@@ -130,6 +131,14 @@ def detect_layout(data: Path) -> LayoutChoice:
         return LayoutChoice("deblur-nerf-data", "LLFF layout: found poses_bounds.npy and no COLMAP model")
     found = sorted(p.name + ("/" if p.is_dir() else "") for p in data.iterdir())
     shown = ", ".join(found[:12]) + (f", ... ({len(found)} entries)" if len(found) > 12 else "") if found else "nothing"
+    photos = [data] + [data / sub for sub in ("images", "input") if (data / sub).is_dir()]
+    for folder in photos:
+        if len(list_images(folder)) >= 2:
+            raise InputError(
+                f"gsmsdr: '{data}' holds photos ({folder}) but no camera poses. Compute them with "
+                f"`gsmsdr-process --images {folder} --out {data.parent / (data.name + '-scene')}` (structure-from-"
+                "motion with pycolmap) and train on that scene."
+            )
     raise InputError(
         f"gsmsdr: cannot tell what kind of scene '{data}' is. Looked for: {'; '.join(LOOKED_FOR)}. Found: {shown}. "
         "Fix the layout, or name a dataparser explicitly (e.g. `ns-train gsmsdr --data <dir> colmap`)."
