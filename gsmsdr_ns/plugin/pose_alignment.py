@@ -153,6 +153,7 @@ def evaluate_with_alignment(
     views = list(pipeline.datamanager.fixed_indices_eval_dataloader)
     task = progress.add_task("aligning test poses" if align else "evaluating", total=len(views)) if progress else None
     rows: List[Dict[str, float]] = []
+    names: List[str] = []  # the model's metric names (psnr, ssim, lpips when available)
     with frozen_for_alignment(model):
         for index, (camera, batch) in enumerate(views):
             camera = camera.to(model.device)
@@ -161,7 +162,8 @@ def evaluate_with_alignment(
                 given, _ = model.get_image_metrics_and_images(outputs, batch)
             # the ground truth as the metrics see it: [0, 1] floats, alpha composited on the render's background
             image = model.composite_with_background(model.get_gt_img(batch["image"]), outputs["background"])
-            row = {"view": index, **{f"{name}": float(value) for name, value in given.items()}}
+            names = list(given)
+            row = {"view": index, **{name: float(value) for name, value in given.items()}}
             if align:
                 aligned_pose = align_camera(model, camera, image, config)
                 pose = corrected_pose(
@@ -177,8 +179,6 @@ def evaluate_with_alignment(
             rows.append(row)
             if progress:
                 progress.advance(task)
-    names = [name for name in rows[0] if name != "view" and not name.endswith("_aligned")]
-    names = [n for n in names if n not in ("rotation_deg", "translation")]
     mean = {name: sum(r[name] for r in rows) / len(rows) for name in names}
     mean_aligned = {name: sum(r[f"{name}_aligned"] for r in rows) / len(rows) for name in names} if align else {}
     return mean, mean_aligned, rows
