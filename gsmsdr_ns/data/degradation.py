@@ -13,6 +13,9 @@ per image of a split, in the split's order) and from which the model builds its 
 
 ``degraded`` is None when nothing is known (no degradation.json, or the image is missing from it);
 ``mixres_factor`` is the ``mixres`` effect's factor, 1 for images known to be at full resolution, None if unknown.
+
+The file is checked against its schema when it is read (``gsmsdr_ns.data.degradation_schema``: the type and range
+of every field, known effect names), so a bad entry fails while the scene is parsed, naming the image and field.
 """
 
 from __future__ import annotations
@@ -23,14 +26,20 @@ import warnings
 from pathlib import Path
 from typing import Any, Dict, Iterable, Optional
 
+from gsmsdr_ns.data.degradation_schema import KNOWN_EFFECTS, check_document  # noqa: F401 (KNOWN_EFFECTS re-exported)
 from gsmsdr_ns.io.errors import InputError, InputWarning
 
 SUPPORTED_VERSIONS = (1,)
-KNOWN_EFFECTS = ("motion", "defocus", "mixres", "noise")
+RECREATE = "Fix the entry, or re-create the file with gsmsdr-degrade (or gsmsdr-estimate)."
+"""How to fix a bad degradation.json (the end of every message about one)."""
 
 
-def load_degradation_json(path: Path) -> Dict[str, Any]:
-    """Parse and check a degradation.json; returns the document with ``images`` as a name -> entry dict."""
+def load_degradation_json(path: Path, fix: str = RECREATE) -> Dict[str, Any]:
+    """Parse a degradation.json and check it against the schema; returns the document (``images``: name -> entry).
+
+    Every field's type and range and every effect name are checked (``gsmsdr_ns.data.degradation_schema``); a
+    violation is an :class:`InputError` naming the file, the image and the field, ended by ``fix``.
+    """
     path = Path(path)
     try:
         doc = json.loads(path.read_text(encoding="utf8"))
@@ -46,21 +55,7 @@ def load_degradation_json(path: Path) -> Dict[str, Any]:
     images = doc.get("images")
     if not isinstance(images, dict):
         raise InputError(f"gsmsdr: '{path}' has no \"images\" object mapping image names to their entries.")
-    for name, entry in images.items():
-        if not isinstance(entry, dict):
-            raise InputError(f"gsmsdr: '{path}': the entry of image '{name}' is not an object.")
-        effects = entry.get("effects", {})
-        if not isinstance(effects, dict):
-            raise InputError(f"gsmsdr: '{path}': \"effects\" of image '{name}' is not an object.")
-        factor = effects.get("mixres", {}).get("factor", 1) if isinstance(effects.get("mixres"), dict) else 1
-        if not isinstance(factor, int) or isinstance(factor, bool) or factor < 1:
-            raise InputError(
-                f"gsmsdr: '{path}': image '{name}' has mixres factor {factor!r}; it must be an integer >= 1."
-            )
-        if entry.get("split") not in (None, "train", "test"):
-            raise InputError(
-                f"gsmsdr: '{path}': image '{name}' has split {entry.get('split')!r}; expected \"train\" or \"test\"."
-            )
+    check_document(path, doc, fix)
     return doc
 
 
