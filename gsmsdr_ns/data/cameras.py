@@ -18,6 +18,7 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from gsmsdr_ns.data.poses import check_rotations
 from gsmsdr_ns.io.atomic import write_file_atomic
 from gsmsdr_ns.io.colmap import ColmapModel
 from gsmsdr_ns.io.errors import InputError
@@ -103,7 +104,11 @@ def opencv_to_llff(c2w: np.ndarray) -> np.ndarray:
 
 
 def read_poses_bounds(path: Path, names: Sequence[str]) -> SceneCameras:
-    """Cameras from an LLFF ``poses_bounds.npy`` whose rows belong to ``names`` (sorted file names), in order."""
+    """Cameras from an LLFF ``poses_bounds.npy`` whose rows belong to ``names`` (sorted file names), in order.
+
+    Every row's rotation must be orthonormal with det +1 within ``gsmsdr_ns.data.poses.ROTATION_TOLERANCE``
+    (1e-3, see :func:`~gsmsdr_ns.data.poses.check_rotations`); :class:`InputError` naming the row and image if not.
+    """
     path = Path(path)
     try:
         array = np.load(path, allow_pickle=False)
@@ -136,6 +141,13 @@ def read_poses_bounds(path: Path, names: Sequence[str]) -> SceneCameras:
             f"gsmsdr: '{path}' row {i} (image '{names[i]}') has hwf = ({height[i]}, {width[i]}, {focal[i]}); "
             "height, width and focal length must be positive."
         )
+    check_rotations(
+        poses[:, :, :3],
+        path,
+        [f"row {i} (image '{name}')" for i, name in enumerate(names)],
+        "Each row's first three columns must be a rotation (LLFF's [down, right, back] camera axes): re-create the "
+        "file from the COLMAP model (gsmsdr-degrade writes one) or fix that row.",
+    )
     intrinsics = np.stack([focal, focal, width / 2.0, height / 2.0], axis=1)
     sizes = np.stack([np.round(width), np.round(height)], axis=1).astype(np.int64)
     return SceneCameras(

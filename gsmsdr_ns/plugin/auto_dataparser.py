@@ -7,6 +7,10 @@ one line, once per parser. Each reader keeps its own nested options (``--pipelin
 ``.colmap.*``, ``.nerfstudio.*``); their ``data`` is replaced by this parser's. Naming a dataparser on the
 command line (``ns-train gsmsdr ... deblur-nerf-data``) bypasses the detection altogether.
 
+A transforms.json scene is checked before nerfstudio's reader sees it (``gsmsdr_ns.data.transforms``: frames,
+poses that are rotations, image files present) and its images are decoded once per split after it (a truncated
+file fails with its name before training).
+
 Training images without a degradation record (a COLMAP or transforms.json scene, or a Deblur-NeRF scene without
 ``degradation.json``) get an estimated record (``gsmsdr_ns.estimate``: sharp / motion / defocus / lower resolution,
 judged against the other photos of the scene, cached in ``<scene>/degradation.estimated.json``), so sharp photos
@@ -27,8 +31,10 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataPars
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gsmsdr_ns.data.degradation import record_from_entry, unknown_record
+from gsmsdr_ns.data.degradation_schema import check_entry
 from gsmsdr_ns.data.layout import LayoutChoice, detect_layout
-from gsmsdr_ns.plugin.dataparser import GSMSDRDataParserConfig
+from gsmsdr_ns.data.transforms import check_transforms_json, transforms_file
+from gsmsdr_ns.plugin.dataparser import GSMSDRDataParserConfig, check_image_files
 from gsmsdr_ns.plugin.deblur_dataparser import DeblurNerfDataParserConfig
 
 
@@ -47,6 +53,9 @@ class GSMSDRAutoDataParserConfig(DataParserConfig):
     """Options of nerfstudio's reader, used for transforms.json scenes."""
     estimate_degradations: bool = True
     """Estimate a degradation record for each training image that has none (cached next to the images' folder)."""
+    verify_images: bool = True
+    """For transforms.json scenes: decode every image of a split once while parsing, so missing, truncated or
+    corrupt files fail before training with their name (the other readers have their own verify_images)."""
 
 
 class GSMSDRAutoDataParser(DataParser):
@@ -71,6 +80,7 @@ class GSMSDRAutoDataParser(DataParser):
                 sub = dataclasses.replace(self.config.colmap, data=data, colmap_path=choice.colmap_path)
             else:
                 sub = dataclasses.replace(self.config.nerfstudio, data=data)
+                check_transforms_json(data, sub.downscale_factor)  # before nerfstudio's asserts
             CONSOLE.print(
                 f"gsmsdr-data: reading '{data}' with {choice.reader} ({choice.reason})",
                 soft_wrap=True,
@@ -82,6 +92,8 @@ class GSMSDRAutoDataParser(DataParser):
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         outputs = self.delegate.get_dataparser_outputs(split=split, **kwargs)
+        if self.choice is not None and self.choice.reader == "nerfstudio-data" and self.config.verify_images:
+            check_image_files(outputs.image_filenames, f"'{transforms_file(self.config.data)}'")
         if split == "train" and self.config.estimate_degradations:
             records = outputs.metadata.get("degradations")
             if records is None:
@@ -95,7 +107,8 @@ def estimated_records(image_filenames: List[Path], records: List[Dict[str, Any]]
     """``records`` with every unknown one (``degraded`` None) replaced by the estimate of its image.
 
     The estimate judges each photo against the others in its folder (``estimate_scene_records``, cached beside the
-    folder); images it leaves undecided stay unknown. Logs one line with the counts per label.
+    folder; every cached entry is checked against the degradation.json schema); images it leaves undecided stay
+    unknown. Logs one line with the counts per label.
     """
     from gsmsdr_ns.estimate.records import CACHE_FILE, estimate_scene_records
 
@@ -105,6 +118,9 @@ def estimated_records(image_filenames: List[Path], records: List[Dict[str, Any]]
         return records
     folder = folders.pop()
     entries = estimate_scene_records(folder.parent, folder.name)
+    cache = folder.parent / CACHE_FILE
+    for name, entry in entries.items():  # the cache may have been edited by hand
+        check_entry(cache, name, entry, f"Fix the entry, or delete '{cache}' to estimate again.")
     estimated, counts = [], Counter()
     for path, record in zip(image_filenames, records):
         entry = entries.get(Path(path).name)

@@ -11,6 +11,8 @@ Checks, in the order they run:
 
 * the data directory and the COLMAP model (``cameras`` / ``images`` as ``.bin`` or ``.txt``) exist;
 * every camera has finite, positive intrinsics and every image a finite pose with a non-zero quaternion;
+* every pose nerfstudio built is a rotation (``max |R^T R - I| <= 1e-3``, det +1): nerfstudio does not normalise
+  the quaternions it reads, so a scaled quaternion would give a scaled rotation;
 * every image of the split exists, decodes completely (a truncated file fails here, not mid-training) and has
   the size its COLMAP camera says;
 * an empty or missing ``points3D`` is not an error: the point cloud comes back empty and the model falls back to
@@ -29,6 +31,7 @@ from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, ColmapDataParserConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from gsmsdr_ns.data.poses import check_rotations
 from gsmsdr_ns.io.colmap import ColmapModel, read_colmap
 from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.io.images import read_image
@@ -59,6 +62,9 @@ class GSMSDRDataParser(ColmapDataParser):
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         self._check_layout()
         outputs = super()._generate_dataparser_outputs(split, **kwargs)
+        # nerfstudio builds rotations from the file's quaternions without normalising them
+        recon = Path(self.config.data) / self.config.colmap_path
+        check_pose_rotations(outputs.cameras, recon, [Path(f).name for f in outputs.image_filenames])
         if self.config.verify_images:
             check_images_match_cameras(outputs.image_filenames, outputs.cameras)
         return outputs
@@ -98,6 +104,28 @@ class GSMSDRDataParser(ColmapDataParser):
                     f"gsmsdr: downscale factor {factor} reads images from '{folder}', which does not exist. "
                     "Create the downscaled copies there, or append `colmap --downscale-factor 1` to ns-train."
                 )
+
+
+def check_image_files(image_filenames: List[Path], listed_in: str) -> None:
+    """Check each image file exists and decodes completely (one full decode each, at parse time, so a truncated or
+    corrupt file fails before training with its name); ``listed_in`` names the file that lists them."""
+    for path in map(Path, image_filenames):
+        if not path.is_file():
+            raise InputError(
+                f"gsmsdr: image file '{path}' is listed in {listed_in} but does not exist. Restore it, or remove it "
+                "from that file."
+            )
+        read_image(path)  # decodes all pixel data: truncated or corrupt files raise InputError naming the file
+
+
+def check_pose_rotations(cameras: Cameras, source: Path, names: List[str]) -> None:
+    """Reject camera-to-world rotations that are not orthonormal with det +1 (``gsmsdr_ns.data.poses``)."""
+    check_rotations(
+        cameras.camera_to_worlds[:, :3, :3].double().numpy(),
+        source,
+        [f"image '{name}'" for name in names],
+        "Re-run COLMAP's mapper (or re-export the model); a pose's quaternion must be a unit quaternion.",
+    )
 
 
 def check_images_match_cameras(image_filenames: List[Path], cameras: Cameras) -> None:
