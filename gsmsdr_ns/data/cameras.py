@@ -12,6 +12,7 @@ principal point is the image centre. Rows are in sorted-file-name order, followe
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Optional, Sequence, Tuple
@@ -82,6 +83,38 @@ def fit_intrinsics(
         )
     fx, fy, cx, cy = (float(v) for v in intrinsics)
     return np.array([fx * sx, fy * sy, cx * sx, cy * sy], dtype=np.float64)
+
+
+def check_same_scale(
+    files: Sequence[Path], model_sizes: np.ndarray, image_sizes: Sequence[Tuple[int, int]], source: str
+) -> None:
+    """Every image of one folder must be the same rescaled copy of its camera (all full size, or all ``images_N``).
+
+    ``model_sizes`` [N, 2] are the cameras' (width, height), ``image_sizes`` the files' (same order). The folder's
+    scale is the most common ``image / camera`` ratio (ties: the first file in order); a file more than 1 px
+    (rounding) away from its camera size times that scale is an :class:`InputError` naming the file, its size and
+    the expected size. A half-size view among full-size ones would otherwise train with rescaled intrinsics at
+    another resolution than the rest of its folder.
+    """
+    if len(files) < 2:
+        return
+    model = np.asarray(model_sizes, dtype=np.float64).reshape(-1, 2)
+    image = np.asarray(image_sizes, dtype=np.float64).reshape(-1, 2)
+    ratios = [tuple(np.round(r, 3)) for r in image / model]
+    scale = np.asarray(Counter(ratios).most_common(1)[0][0])
+    expected = model * scale
+    bad = np.flatnonzero(np.any(np.abs(image - expected) > 1.0, axis=1))
+    if bad.size == 0:
+        return
+    i = int(bad[0])
+    (w, h), (ew, eh), (w0, h0) = image[i].astype(int), np.round(expected[i]).astype(int), model[i].astype(int)
+    others = "the size of their cameras" if np.allclose(scale, 1.0) else f"{scale[0]:.3g}x the size of their cameras"
+    raise InputError(
+        f"gsmsdr: image file '{files[i]}' is {w}x{h} px but the other images of '{Path(files[i]).parent}' are "
+        f"{others}, so it should be {ew}x{eh} px (its camera in {source} is "
+        f"{w0}x{h0} px). All images of a folder must have matching sizes: store a lower-resolution view upsampled "
+        f"back to {ew}x{eh} (as gsmsdr-degrade does, with its mixres factor in degradation.json), or replace it."
+    )
 
 
 # --- LLFF poses_bounds.npy -----------------------------------------------------------------------------------

@@ -154,6 +154,7 @@ class DeblurNerfDataParser(SortedSceneParser):
             twins = self.test_images_dir()
             if twins is not None:
                 files = [resolve_image(twins, names[i], f"'{self.images_dir()}' (its sharp twin)") for i in indices]
+                self.check_image_sizes(scene.cameras, indices, files)
                 self._warn_if_twins_differ_in_size(files, [scene.files[i] for i in indices])
             else:
                 files = [scene.files[i] for i in indices]

@@ -3,7 +3,9 @@
 Both readers hold out test views by their index in the file-name-sorted image list (never by COLMAP image id),
 take poses from a COLMAP model (pycolmap) or an LLFF ``poses_bounds.npy``, and make every camera's intrinsics match
 the size of the image file it is paired with (``images_N/`` copies, sharp twins of another size, a COLMAP camera
-that was computed at another resolution: fx, fy, cx, cy are rescaled per image).
+that was computed at another resolution: fx, fy, cx, cy are rescaled per image). Within one folder every image must
+be at the same scale of its camera (``gsmsdr_ns.data.cameras.check_same_scale``): a half-size view among full-size
+ones is an error naming it, checked from the image headers when the scene is loaded.
 
 Poses are oriented, centred and scaled as nerfstudio's ``colmap`` dataparser does (OpenCV -> OpenGL camera axes,
 COLMAP's -y gravity guess -> +z, ``camera_utils.auto_orient_and_center_poses``, largest |translation| -> 1), over
@@ -25,7 +27,8 @@ from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserCo
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from gsmsdr_ns.data.cameras import SceneCameras, cameras_from_colmap, fit_intrinsics, read_poses_bounds
+from gsmsdr_ns.data.cameras import SceneCameras, cameras_from_colmap, check_same_scale, fit_intrinsics
+from gsmsdr_ns.data.cameras import read_poses_bounds
 from gsmsdr_ns.io.colmap import has_colmap_model, read_colmap
 from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.io.images import list_images, read_image_size, resolve_image
@@ -203,6 +206,7 @@ class SortedSceneParser(DataParser):
         if self._scene is None:
             self.check_data_dir()
             source = self.read_source()
+            self.check_image_sizes(source.cameras, range(len(source.files)), source.files)
             poses, transform, scale = normalise_poses(source.cameras.c2w, self.config)
             points = None
             if self.config.load_3D_points:
@@ -216,6 +220,18 @@ class SortedSceneParser(DataParser):
                     points = (transform_points(xyz, transform, scale), torch.from_numpy(rgb))
             self._scene = LoadedScene(source.cameras, list(source.files), poses, transform, scale, points)
         return self._scene
+
+    @staticmethod
+    def check_image_sizes(cameras: SceneCameras, indices: Sequence[int], files: Sequence[Path]) -> None:
+        """Each file a rescaled copy of its camera (same aspect), all files of the folder at the same scale.
+
+        Reads image headers only; :class:`InputError` naming the file, its size and the expected size.
+        """
+        idx = [int(i) for i in indices]
+        sizes = [read_image_size(Path(f)) for f in files]
+        for i, path, size in zip(idx, files, sizes):
+            fit_intrinsics(cameras.intrinsics[i], tuple(cameras.sizes[i]), size, f"image file '{path}'")
+        check_same_scale(list(files), cameras.sizes[idx], sizes, f"'{cameras.source}'")
 
     # --- outputs -----------------------------------------------------------------------------------------------
 
