@@ -44,9 +44,13 @@ class Field:
             text = "one of " + ", ".join(json.dumps(c) for c in self.choices)
         elif self.kind in ("number", "int"):
             text = "a finite number" if self.kind == "number" else "an integer"
-            bounds = [f">= {self.minimum:g}" if self.minimum is not None else "",
-                      f"<= {self.maximum:g}" if self.maximum is not None else ""]  # fmt: skip
-            text += " " + " and ".join(b for b in bounds if b) if any(bounds) else ""
+            bounds = []
+            if self.minimum is not None:
+                bounds.append(f">= {self.minimum:g}")
+            if self.maximum is not None:
+                bounds.append(f"<= {self.maximum:g}")
+            if bounds:
+                text += " " + " and ".join(bounds)
         else:
             text = {
                 "bool": "true or false (a JSON boolean, not a string)",

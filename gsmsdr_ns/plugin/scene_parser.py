@@ -27,8 +27,13 @@ from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserCo
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from gsmsdr_ns.data.cameras import SceneCameras, cameras_from_colmap, check_same_scale, fit_intrinsics
-from gsmsdr_ns.data.cameras import read_poses_bounds
+from gsmsdr_ns.data.cameras import (
+    SceneCameras,
+    cameras_from_colmap,
+    check_same_scale,
+    fit_intrinsics,
+    read_poses_bounds,
+)
 from gsmsdr_ns.io.colmap import has_colmap_model, read_colmap
 from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.io.images import list_images, read_image_size, resolve_image
