@@ -281,17 +281,23 @@ def test_transforms_json_scaled_rotation_names_the_frame(tiny_scene, tmp_path):
         parse_auto(scene)
 
 
-def test_colmap_quaternion_that_is_not_unit_names_the_image(tiny_scene, tmp_path):
-    """nerfstudio's COLMAP reader uses the quaternion as written: a scaled one gives a scaled rotation."""
+@pytest.mark.parametrize("reader", ["colmap", "deblur-nerf-data"])
+def test_colmap_quaternion_that_is_not_unit_names_the_image(tiny_scene, tmp_path, reader):
+    """nerfstudio's COLMAP reader and pycolmap use the quaternion as written: a scaled one gives a scaled rotation."""
     scene = Path(shutil.copytree(tiny_scene, tmp_path / "scene"))
+    if reader == "deblur-nerf-data":
+        scene = make_deblur_scene(tiny_scene, tmp_path / "deblur")
     model = scene / "sparse" / "0"
     cameras, images, points = colmap_io.read_model(str(model), ext=".bin")
     image_id = next(i for i, im in images.items() if im.name == TRAIN_VIEW)
     images[image_id] = images[image_id]._replace(qvec=images[image_id].qvec * 1.5)
+    for file in model.iterdir():  # rigs / frames would hold the poses for pycolmap: write a model without them
+        file.unlink()
     colmap_io.write_model(cameras, images, points, str(model), ext=".bin")
     with pytest.raises(InputError, match=rf"^gsmsdr: '{model}' image '{TRAIN_VIEW}' has a camera rotation that is "
                        r"not a rotation matrix: .*a pose's quaternion must be a unit quaternion\.$"):  # fmt: skip
-        GSMSDRDataParserConfig(data=scene).setup().get_dataparser_outputs("train")
+        config = GSMSDRDataParserConfig if reader == "colmap" else DeblurNerfDataParserConfig
+        config(data=scene).setup().get_dataparser_outputs("train")
 
 
 # ---------------------------------------------------------------------------------------- transforms.json images

@@ -51,7 +51,17 @@ class SceneCameras:
 
 
 def cameras_from_colmap(model: ColmapModel) -> SceneCameras:
-    """The :class:`SceneCameras` of a COLMAP model read by :func:`gsmsdr_ns.io.colmap.read_colmap` (same rows)."""
+    """The :class:`SceneCameras` of a COLMAP model read by :func:`gsmsdr_ns.io.colmap.read_colmap` (same rows).
+
+    pycolmap builds each rotation from the quaternion as written, so a quaternion that is not a unit quaternion
+    gives a scaled rotation: every rotation must pass :func:`~gsmsdr_ns.data.poses.check_rotations` (1e-3).
+    """
+    check_rotations(
+        model.c2w[:, :3, :3],
+        model.path,
+        [f"image '{name}'" for name in model.names],
+        "Re-run COLMAP's mapper (or re-export the model); a pose's quaternion must be a unit quaternion.",
+    )
     return SceneCameras(
         names=list(model.names),
         c2w=model.c2w,
