@@ -18,6 +18,7 @@ from gsmsdr_ns.io.images import write_image
 from gsmsdr_ns.degrade.kernels import apply_mixres, convolve_psf, disk_blur, motion_kernel_from_trajectory
 from gsmsdr_ns.estimate import EstimateConfig, estimate_degradations
 from gsmsdr_ns.estimate.cli import parse
+from gsmsdr_ns.estimate.features import to_gray
 from gsmsdr_ns.estimate.records import (
     CACHE_FILE,
     ESTIMATED,
@@ -207,3 +208,37 @@ def test_views_of_different_content_leave_the_kind_of_blur_unknown():
         entry = entry_from_estimate(est)
         assert entry["degraded"] is True and set(entry["effects"]) == {"motion", "defocus"}
     assert all(e.label in ("sharp", "unknown") and e.blurred is not True for e in estimates[:-2])
+
+
+def test_evaluation_scores_a_scene_against_its_records(capture, tmp_path):
+    from gsmsdr_ns.estimate.evaluate import format_table, score_scene
+
+    scene = _copy_scene(capture[0], tmp_path / "scene")
+    truth = {
+        "view_20.png": {"motion": {"model": "kernel"}},
+        "view_21.png": {"motion": {"model": "kernel"}},  # recorded as motion, blurred by a disk: a wrong kind
+        "view_22.png": {"mixres": {"factor": 3}},
+    }
+    names = sorted(p.name for p in (scene / "images").iterdir())
+    doc = {"version": 1, "images": {n: {"degraded": n in truth, "effects": truth.get(n, {})} for n in names}}
+    (scene / "degradation.json").write_text(json.dumps(doc), encoding="utf8")
+    score = score_scene(scene, "photos capture", EstimateConfig())
+    assert (score.images, score.sharp_ok, score.unknown) == (11, 11, 0)
+    assert (score.blur_total, score.blur_ok, score.blur_wrong) == (2, 1, 1)
+    assert (score.mixres_total, score.mixres_ok) == (1, 1)
+    assert len(score.mistakes) == 1 and score.mistakes[0].startswith("view_21.png: motion -> defocus")
+    table = format_table([score, score_scene(scene, "synth copy", EstimateConfig())]).splitlines()
+    assert [row.split(" | ")[0] for row in table[2:]] == ["| photos capture", "| synth copy", "| **photos**",
+                                                          "| **synth**", "| **all**"]  # fmt: skip
+    assert table[-1].split(" | ")[3:6] == [" 50.0% (2/4)", "2", " 50.0% (2/4)"]
+
+
+def test_sobel_gradient_matches_kornia():
+    from kornia.filters import spatial_gradient
+
+    from gsmsdr_ns.estimate.features import sobel_gradient
+
+    gray = to_gray(sharp_views()[0]).float()
+    expected = spatial_gradient(gray[None, None], mode="sobel", normalized=True)[0, 0]
+    assert torch.allclose(sobel_gradient(gray), expected, atol=1e-6)
+    assert float(expected.abs().max()) > 0.1  # a real photo has edges: the comparison is not between zeros

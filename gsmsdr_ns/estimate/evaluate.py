@@ -10,7 +10,8 @@ same built-in presets. Every scene is written once into ``--work`` and reused. S
 * sharp vs degraded: share of images whose estimate (sharp, or anything else) matches the truth (``degraded``);
   an ``unknown`` estimate counts as degraded (the model then simulates every degradation);
 * motion vs defocus: among images blurred by exactly one of the two, the share labelled with that one (an
-  ``unknown`` kind of blur is not counted as right; "wrong blur kind" counts the images labelled with the other);
+  ``unknown`` kind of blur is not counted as right; "wrong blur kind" counts the images labelled with the other,
+  "kind right when decided" is the share right among the images labelled motion or defocus);
 * mixres factor: among images with a known factor > 1, the share whose estimated factor is within one group.
 """
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +36,8 @@ from .classify import EstimateConfig, estimate_degradations
 SYNTH_VARIANTS = ("sharp", "motion", "defocus", "mixres", "mixed", "motion-strong", "defocus-strong")
 PHOTO_VARIANTS = ("motion", "defocus", "mixres", "motion-defocus", "mixed", "motion-strong", "defocus-strong")
 _OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
+SHARED_DATA = Path(os.environ.get("GSMSDR_SHARED_DATA", Path(__file__).resolve().parents[2] / ".." / "shared" / "data"))
+"""The project's shared real data (beside the repository; GSMSDR_SHARED_DATA points elsewhere)."""
 
 
 def llff_transforms(images_dir: Path, poses_bounds: Path) -> dict:
@@ -144,20 +148,30 @@ def _pct(ok: int, total: int) -> str:
     return f"{100.0 * ok / total:5.1f}% ({ok}/{total})" if total else "-"
 
 
+def total_of(scores: list[SceneScore], name: str) -> SceneScore:
+    """The counts of several scenes added up (mistakes not kept)."""
+    total = SceneScore(name)
+    for s in scores:
+        for key in ("images", "sharp_ok", "blur_total", "blur_ok", "blur_wrong", "mixres_total", "mixres_ok",
+                    "unknown", "seconds"):  # fmt: skip
+            setattr(total, key, getattr(total, key) + getattr(s, key))
+    return total
+
+
 def format_table(scores: list[SceneScore]) -> str:
-    """Markdown table: one row per scene and a total row."""
-    head = ("| scene | images | sharp vs degraded | motion vs defocus | wrong blur kind | mixres factor +-1 | "
-            "unknown | s/image |")  # fmt: skip
-    rows = [head, "|" + "---|" * 8]
-    total = SceneScore("all")
-    for s in scores + [total]:
-        if s is not total:
-            for key in ("images", "sharp_ok", "blur_total", "blur_ok", "blur_wrong", "mixres_total", "mixres_ok",
-                        "unknown"):  # fmt: skip
-                setattr(total, key, getattr(total, key) + getattr(s, key))
-            total.seconds += s.seconds
+    """Markdown table: one row per scene, a total row per kind of scene (the first word of the names: synth,
+    photos) when there are several kinds, and a total row."""
+    head = ("| scene | images | sharp vs degraded | motion vs defocus | wrong blur kind | kind right when decided | "
+            "mixres factor +-1 | unknown | s/image |")  # fmt: skip
+    rows = [head, "|" + "---|" * 9]
+    kinds = list(dict.fromkeys(s.name.split()[0] for s in scores))
+    totals = []
+    if len(kinds) > 1:
+        totals = [total_of([s for s in scores if s.name.split()[0] == k], f"**{k}**") for k in kinds]
+    for s in scores + totals + [total_of(scores, "**all**")]:
+        decided = s.blur_ok + s.blur_wrong
         rows.append(f"| {s.name} | {s.images} | {_pct(s.sharp_ok, s.images)} | {_pct(s.blur_ok, s.blur_total)} | "
-                    f"{s.blur_wrong if s.blur_total else '-'} | "
+                    f"{s.blur_wrong if s.blur_total else '-'} | {_pct(s.blur_ok, decided)} | "
                     f"{_pct(s.mixres_ok, s.mixres_total)} | {s.unknown} | "
                     f"{s.seconds / max(s.images, 1):.3f} |")  # fmt: skip
     return "\n".join(rows)
@@ -169,7 +183,7 @@ class EvaluateCLI:
 
     work: Path = Path("/tmp/gsmsdr-estimate-eval")
     """Where the evaluation scenes are written (once; later runs reuse them)."""
-    photos: Tuple[Path, ...] = (Path("/work/shared/data/llff-fern/images_8"),)
+    photos: Tuple[Path, ...] = (SHARED_DATA / "llff-fern" / "images_8",)
     """Folders of real sharp photos with poses_bounds.npy beside them (LLFF); none to skip."""
     synth: bool = True
     """Evaluate the procedural scenes (gsmsdr-synth variants)."""
