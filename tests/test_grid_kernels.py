@@ -99,7 +99,7 @@ def test_field_predicts_on_the_grid_and_blurs_as_its_dense_kernels(factor):
     render = torch.rand(1, 3, 22, 29)
     depth = torch.rand(1, 1, 22, 29) + 1.0
     ids = torch.tensor([1])
-    kernels, mask = field.predict(render, depth, ids, 1)
+    kernels, mask = field(render, depth, ids, 1, dense=False)
     assert mask.shape == (1, 1, 22, 29)
     if factor == 1:
         assert isinstance(kernels, torch.Tensor) and kernels.shape == (1, 81, 22, 29)

@@ -158,10 +158,8 @@ class TimingRecorder:
         out = function(*args, **kwargs)
         self._add_forward(category, self._now() - started)
         inputs: Any = (args, kwargs)
-        # a module, or a bound method of one (BlurField.predict): its parameters' gradients are its backward
-        module = function if isinstance(function, torch.nn.Module) else getattr(function, "__self__", None)
-        if isinstance(module, torch.nn.Module) and torch.is_grad_enabled():
-            params = {id(p): p for p in module.parameters() if p.requires_grad}
+        if isinstance(function, torch.nn.Module) and torch.is_grad_enabled():
+            params = {id(p): p for p in function.parameters() if p.requires_grad}
             used = _reachable_leaves([t for t in _tensors(out) if t.requires_grad], params)
             inputs = (args, kwargs, used)
         self._mark_backward(category, out, inputs)

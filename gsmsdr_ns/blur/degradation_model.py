@@ -326,7 +326,7 @@ class DegradationModel(nn.Module):
         kernels = mask = None
         if field:
             field_depth_in = depth if field_depth else None
-            kernels, mask = timed("blur_field", self.blur_field.predict, image, field_depth_in, view_ids, scale)
+            kernels, mask = timed("blur_field", self.blur_field, image, field_depth_in, view_ids, scale, dense=False)
         return LensThenField(lens_kernels, image, kernels, mask)
 
     # -- viewer ---------------------------------------------------------------------------------------------

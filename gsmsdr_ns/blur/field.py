@@ -29,7 +29,7 @@ from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 from torch import Tensor, nn
 
 from .defocus import ThinLensDefocus
-from .grid_kernels import GridKernels, apply_grid_kernels, as_dense, pool_to_grid, upsample_grid
+from .grid_kernels import GridKernels, apply_grid_kernels, pool_to_grid, upsample_grid
 from .hpko import HPKOHeads, HPKOScheduler, ViewKernels, check_kernel_sizes
 from .kernels import apply_image_kernels, apply_pixel_kernels
 from .maan import MCA, BAGSFeatures, ContextualFeatures, RGBDFeatures, check_bchw, check_view_ids
@@ -85,10 +85,11 @@ class BlurFieldConfig:
     """Width of the per-scale base heads M_base^s; None: from ``size``."""
     num_fans: Optional[int] = None
     """Number of Feature Attention Networks after the shallow 3x3 extractor (paper: 2); None: from ``size``."""
-    feature_downsample: int = 1
-    """The feature network, MCA and heads run on the render area-averaged by this factor (1: every pixel); the
-    kernels and masks they predict are bilinearly resampled to the render's pixels. Blur varies smoothly across a
-    photo, so a coarser grid predicts nearly the same kernels for a fraction of the network's cost."""
+    feature_downsample: int = 4
+    """The feature network, MCA and heads run on the render averaged over cells of this many pixels squared (1:
+    every pixel, as in the paper); the kernels and masks they predict are resampled bilinearly to every pixel when
+    they are applied. Blur varies smoothly across a photo, so the coarse grid predicts nearly the same kernels for
+    a fraction of the network's time and memory."""
     kernel_sizes: Tuple[int, ...] = (5, 9, 17)
     """Blur kernel size per HPKO scale, coarse to fine (K_3, K_2, K_1); odd, non-decreasing."""
     gaka: bool = True
@@ -307,28 +308,20 @@ class BlurField(nn.Module):
         depth: Optional[Tensor],  # [B, 1, H, W] or None
         view_ids: Tensor,  # [B] int
         scale: int,
-    ) -> Tuple[Tensor, Tensor]:
-        """Kernels and masks for ``render`` (already at scale ``scale``'s resolution), at every pixel (with
-        ``feature_downsample`` > 1 predicted on the coarse grid and resampled: :meth:`predict` keeps them there).
+        dense: bool = True,
+    ) -> Tuple[Union[Tensor, GridKernels], Tensor]:
+        """Kernels and masks for ``render`` (already at scale ``scale``'s resolution).
+
+        With ``feature_downsample`` r > 1 the feature network runs on the render averaged over r x r cells and the
+        kernels are predicted on that grid; ``dense`` resamples them to every pixel, ``dense=False`` keeps them on
+        the grid (:class:`GridKernels`, which :meth:`blur` applies without a full-resolution copy). The mask is
+        always resampled to the render's pixels.
 
         Returns:
-            kernel_weights: [B, K_s * K_s, H, W], softmax over dim 1 (sums to 1), row-major window index.
+            kernel_weights: [B, K_s * K_s, H, W] (or :class:`GridKernels`), softmax over dim 1 (sums to 1),
+                row-major window index.
             mask: [B, 1, H, W] in (0, 1).
         """
-        kernels, mask = self.predict(render, depth, view_ids, scale)
-        return as_dense(kernels), mask
-
-    def predict(
-        self,
-        render: Tensor,  # [B, 3, H, W]
-        depth: Optional[Tensor],  # [B, 1, H, W] or None
-        view_ids: Tensor,  # [B] int
-        scale: int,
-    ) -> Tuple[Union[Tensor, GridKernels], Tensor]:
-        """:meth:`forward` without resampling the kernels to every pixel: with ``feature_downsample`` r > 1 the
-        feature network runs on the render averaged over r x r cells and the kernels stay on that grid
-        (:class:`GridKernels`, applied by :meth:`blur` without a full-resolution copy); the mask [B, 1, H, W] is
-        resampled to the render's pixels. With r = 1 (or mode "view") the same as :meth:`forward`."""
         factor = int(self.config.feature_downsample)
         if self.mcf is None or factor == 1:
             return self._predict_per_pixel(render, depth, view_ids, scale)
@@ -337,7 +330,8 @@ class BlurField(nn.Module):
         grid_depth = pool_to_grid(depth, factor) if depth is not None and self.uses_depth else None
         features = self.features(pool_to_grid(render, factor), grid_depth, view_ids)
         kernels, mask = self.heads(features, scale, view_ids)
-        return GridKernels(kernels, factor, size), upsample_grid(mask, factor, size)
+        grid_kernels = GridKernels(kernels, factor, size)
+        return (grid_kernels.dense() if dense else grid_kernels), upsample_grid(mask, factor, size)
 
     def _predict_per_pixel(
         self, render: Tensor, depth: Optional[Tensor], view_ids: Tensor, scale: int
@@ -357,7 +351,7 @@ class BlurField(nn.Module):
         Args:
             render: [B, C, H, W]; sRGB-encoded in [0, 1] when ``linear_light``.
             kernel_weights: [B, K*K, H, W]; expanded with stride 0 over the pixels (mode "view"), applied as one
-                convolution per image; or :class:`GridKernels` (from :meth:`predict`), resampled on the fly.
+                convolution per image; or :class:`GridKernels` (``forward(..., dense=False)``), resampled on the fly.
             linear_light: blur linear light (a camera's blur) instead of the encoded values.
         Returns:
             [B, C, H, W], in the render's dtype (or wider). Kernels predicted in a lower precision (the heads under
