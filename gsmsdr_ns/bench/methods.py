@@ -98,6 +98,9 @@ METHODS: Dict[str, MethodSpec] = {
         _method("re-only", "RE-only", "gsmsdr", "MAAN features, one full-resolution kernel scale (no HPKO)",
                 mode="re_only"),  # fmt: skip
         _method("full", "GS-MSDR (full)", "gsmsdr", "the gsmsdr preset: MAAN + HPKO, with per-view kernels"),
+        _method("full-per-pixel", "full, features at every pixel", "gsmsdr",
+                "full with the feature network at every pixel (feature_downsample 1, the paper's field)",
+                feature_downsample=1),  # fmt: skip
         _method("-view", "-view kernels", "gsmsdr", "full without per-view kernels (the paper's blur field)",
                 view_kernels=False),  # fmt: skip
         _method("view", "per-view kernels (mode view)", "gsmsdr",

@@ -15,13 +15,14 @@ level up) under it.
 from __future__ import annotations
 
 from collections import Counter, OrderedDict
-from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence
+from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence, Union
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
+from gsmsdr_ns.blur.grid_kernels import GridKernels, as_dense
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo
 from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, describe_profiles, effective_factor
@@ -64,11 +65,11 @@ class DegradationPlan(NamedTuple):
 
 class LensThenField(NamedTuple):
     """The blur stages of one image: the lens's kernels (None: no lens), the image after the lens, and the field's
-    kernels and mask for that image (None: the field did not run)."""
+    kernels (per pixel, or on the field's coarse grid) and mask for that image (None: the field did not run)."""
 
     lens_kernels: Optional[Tensor]
     image: Tensor
-    kernels: Optional[Tensor]
+    kernels: Optional[Union[Tensor, GridKernels]]
     mask: Optional[Tensor]
 
 
@@ -324,7 +325,8 @@ class DegradationModel(nn.Module):
             image = timed("kernels", BlurField.blur, image, lens_kernels, self.blur_field.config.linear_light)
         kernels = mask = None
         if field:
-            kernels, mask = timed("blur_field", self.blur_field, image, depth if field_depth else None, view_ids, scale)
+            field_depth_in = depth if field_depth else None
+            kernels, mask = timed("blur_field", self.blur_field, image, field_depth_in, view_ids, scale, dense=False)
         return LensThenField(lens_kernels, image, kernels, mask)
 
     # -- viewer ---------------------------------------------------------------------------------------------
@@ -383,10 +385,11 @@ class DegradationModel(nn.Module):
                 "blur_mask": rgb.new_ones(height, width, 1),
             }
         assert stages.mask is not None
-        extent = kernel_spread(stages.kernels) * info.downsample * stages.mask  # taps are pixels at the scale's grid
+        kernels = as_dense(stages.kernels)
+        extent = kernel_spread(kernels) * info.downsample * stages.mask  # taps are pixels at the scale's grid
         if lens_extent is not None:  # RMS radii of successive blurs add in quadrature
             extent = torch.sqrt(extent**2 + lens_extent**2)
-        coarse = coarsen_kernels(stages.kernels, d // info.downsample)
+        coarse = coarsen_kernels(kernels, d // info.downsample)
         blurred = BlurField.blur(stages.image, coarse, self.blur_field.config.linear_light)
         mask_full = enlarge(stages.mask)
         base = image if not lens else enlarge(stages.image)  # what the field blends with: the render or its lens blur

@@ -23,12 +23,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any, Dict, List, Literal, NamedTuple, Optional, Tuple
+from typing import Any, Dict, List, Literal, NamedTuple, Optional, Tuple, Union
 
 from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 from torch import Tensor, nn
 
 from .defocus import ThinLensDefocus
+from .grid_kernels import GridKernels, apply_grid_kernels, pool_to_grid, upsample_grid
 from .hpko import HPKOHeads, HPKOScheduler, ViewKernels, check_kernel_sizes
 from .kernels import apply_image_kernels, apply_pixel_kernels
 from .maan import MCA, BAGSFeatures, ContextualFeatures, RGBDFeatures, check_bchw, check_view_ids
@@ -84,6 +85,11 @@ class BlurFieldConfig:
     """Width of the per-scale base heads M_base^s; None: from ``size``."""
     num_fans: Optional[int] = None
     """Number of Feature Attention Networks after the shallow 3x3 extractor (paper: 2); None: from ``size``."""
+    feature_downsample: int = 4
+    """The feature network, MCA and heads run on the render averaged over cells of this many pixels squared (1:
+    every pixel, as in the paper); the kernels and masks they predict are resampled bilinearly to every pixel when
+    they are applied. Blur varies smoothly across a photo, so the coarse grid predicts nearly the same kernels for
+    a fraction of the network's time and memory."""
     kernel_sizes: Tuple[int, ...] = (5, 9, 17)
     """Blur kernel size per HPKO scale, coarse to fine (K_3, K_2, K_1); odd, non-decreasing."""
     gaka: bool = True
@@ -166,6 +172,8 @@ class BlurFieldConfig:
             raise ValueError(f"thin_lens_initial_aperture must be > 0, got {self.thin_lens_initial_aperture}")
         if not self.kernel_prior_sigma > 0:
             raise ValueError(f"kernel_prior_sigma must be > 0, got {self.kernel_prior_sigma}")
+        if int(self.feature_downsample) != self.feature_downsample or self.feature_downsample < 1:
+            raise ValueError(f"feature_downsample must be an integer >= 1, got {self.feature_downsample}")
         if dims.pos_channels < 0 or dims.pos_channels % 4:
             raise ValueError(f"pos_channels must be a non-negative multiple of 4, got {dims.pos_channels}")
 
@@ -300,13 +308,35 @@ class BlurField(nn.Module):
         depth: Optional[Tensor],  # [B, 1, H, W] or None
         view_ids: Tensor,  # [B] int
         scale: int,
-    ) -> Tuple[Tensor, Tensor]:
+        dense: bool = True,
+    ) -> Tuple[Union[Tensor, GridKernels], Tensor]:
         """Kernels and masks for ``render`` (already at scale ``scale``'s resolution).
 
+        With ``feature_downsample`` r > 1 the feature network runs on the render averaged over r x r cells and the
+        kernels are predicted on that grid; ``dense`` resamples them to every pixel, ``dense=False`` keeps them on
+        the grid (:class:`GridKernels`, which :meth:`blur` applies without a full-resolution copy). The mask is
+        always resampled to the render's pixels.
+
         Returns:
-            kernel_weights: [B, K_s * K_s, H, W], softmax over dim 1 (sums to 1), row-major window index.
+            kernel_weights: [B, K_s * K_s, H, W] (or :class:`GridKernels`), softmax over dim 1 (sums to 1),
+                row-major window index.
             mask: [B, 1, H, W] in (0, 1).
         """
+        factor = int(self.config.feature_downsample)
+        if self.mcf is None or factor == 1:
+            return self._predict_per_pixel(render, depth, view_ids, scale)
+        check_bchw(render, "render", 3)
+        size = (render.shape[-2], render.shape[-1])
+        grid_depth = pool_to_grid(depth, factor) if depth is not None and self.uses_depth else None
+        features = self.features(pool_to_grid(render, factor), grid_depth, view_ids)
+        kernels, mask = self.heads(features, scale, view_ids)
+        grid_kernels = GridKernels(kernels, factor, size)
+        return (grid_kernels.dense() if dense else grid_kernels), upsample_grid(mask, factor, size)
+
+    def _predict_per_pixel(
+        self, render: Tensor, depth: Optional[Tensor], view_ids: Tensor, scale: int
+    ) -> Tuple[Tensor, Tensor]:
+        """Kernels and masks from the feature network run at every pixel of ``render``."""
         if self.mcf is None:
             check_bchw(render, "render", 3)
             check_view_ids(view_ids, render.shape[0], self.num_train_views)
@@ -314,21 +344,23 @@ class BlurField(nn.Module):
         return self.heads(self.features(render, depth, view_ids), scale, view_ids)
 
     @staticmethod
-    def blur(render: Tensor, kernel_weights: Tensor, linear_light: bool = False) -> Tensor:
+    def blur(render: Tensor, kernel_weights: Union[Tensor, GridKernels], linear_light: bool = False) -> Tensor:
         """``apply_pixel_kernels(render, k)``; with ``linear_light`` the kernels blur ``srgb_to_linear(render)`` and
         the result is re-encoded (``linear_to_srgb``).
 
         Args:
             render: [B, C, H, W]; sRGB-encoded in [0, 1] when ``linear_light``.
             kernel_weights: [B, K*K, H, W]; expanded with stride 0 over the pixels (mode "view"), applied as one
-                convolution per image.
+                convolution per image; or :class:`GridKernels` (``forward(..., dense=False)``), resampled on the fly.
             linear_light: blur linear light (a camera's blur) instead of the encoded values.
         Returns:
             [B, C, H, W], in the render's dtype (or wider). Kernels predicted in a lower precision (the heads under
             ``torch.autocast``) are applied in the render's dtype.
         """
         source = rgb_to_linear_rgb(render) if linear_light else render
-        if kernel_weights.dim() == 4 and kernel_weights.stride(-1) == 0 and kernel_weights.stride(-2) == 0:
+        if isinstance(kernel_weights, GridKernels):
+            blurred = apply_grid_kernels(source, kernel_weights.weights.to(source.dtype), kernel_weights.factor)
+        elif kernel_weights.dim() == 4 and kernel_weights.stride(-1) == 0 and kernel_weights.stride(-2) == 0:
             # one kernel per image, expanded over the pixels (mode "view"): a depthwise convolution
             blurred = apply_image_kernels(source, kernel_weights[:, :, 0, 0])
         else:
@@ -336,7 +368,9 @@ class BlurField(nn.Module):
         return linear_rgb_to_rgb(blurred) if linear_light else blurred
 
     @staticmethod
-    def degrade(render: Tensor, kernel_weights: Tensor, mask: Tensor, linear_light: bool = False) -> Tensor:
+    def degrade(
+        render: Tensor, kernel_weights: Union[Tensor, GridKernels], mask: Tensor, linear_light: bool = False
+    ) -> Tensor:
         """``m * blur(render, k, linear_light) + (1 - m) * render`` (the blend is on the encoded values).
 
         Args:

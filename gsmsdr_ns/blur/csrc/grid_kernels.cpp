@@ -1,0 +1,322 @@
+// Per-pixel K x K kernels predicted on a coarse grid, bilinearly resampled to
+// every pixel on the fly and applied with replicate borders: forward and
+// hand-written backward on CPU (Python entry point and PyTorch twin:
+// gsmsdr_ns/blur/grid_kernels.py).
+//
+// With r the grid factor, the kernel of pixel (y, x) is
+//   w[k](y, x) = bilinear(grid[k], (y + 0.5) / r - 0.5, (x + 0.5) / r - 0.5)
+// (source coordinates clamped to the grid, as F.interpolate(scale_factor=r,
+// mode="bilinear", align_corners=False) does), and the output is
+//   out[b, c, y, x] = sum_k w[k](y, x) * image[b, c, clamp(y + i - p), clamp(x + j - p)]
+// with k = i * K + j, p = K / 2, as in pixel_kernels.cpp. The full-resolution
+// [B, K*K, H, W] weights are never stored: each row of them is rebuilt from
+// two grid rows when it is needed.
+//
+// Parallel loops (one OpenMP region per call, each output row owned by one
+// iteration, so results do not depend on the thread schedule):
+//   forward      : iteration (b, y)  writes out[b, :, y, :]
+//   grad_image   : iteration (b, ys) gathers every (y, i) whose clamped source
+//                  row is ys and writes grad_image[b, :, ys, :]
+//   grad_grid    : iteration (b, y) reduces pixel row y's tap gradients over
+//                  the columns into its own [K*K, w] block; then iteration
+//                  (b, gy) sums the blocks of the rows whose stencil reads
+//                  grid row gy into grad_grid[b, :, gy, :]
+
+#include <ATen/Dispatch.h>
+#include <ATen/Parallel.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <torch/library.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <optional>
+#include <tuple>
+#include <vector>
+
+namespace gsmsdr_grid {
+
+using at::Tensor;
+
+namespace {
+
+struct Dims {
+    int64_t B, C, H, W, K, p, HW, h, w, hw, r;
+};
+
+// Bilinear stencil along one axis: output index o reads grid cells lo and hi with weights 1 - t and t.
+struct Stencil {
+    int64_t lo, hi;
+    double t;
+};
+
+inline Stencil stencil(int64_t o, int64_t r, int64_t n) {
+    double src = (static_cast<double>(o) + 0.5) / static_cast<double>(r) - 0.5;
+    if (src < 0.0) src = 0.0;
+    int64_t lo = std::min<int64_t>(static_cast<int64_t>(std::floor(src)), n - 1);
+    int64_t hi = std::min<int64_t>(lo + 1, n - 1);
+    return Stencil{lo, hi, src - static_cast<double>(lo)};
+}
+
+inline void interior(int64_t W, int64_t d, int64_t &lo, int64_t &hi) {
+    lo = std::min<int64_t>(std::max<int64_t>(-d, 0), W);
+    hi = std::max<int64_t>(std::min<int64_t>(W - d, W), lo);
+}
+
+inline int64_t clamp_row(int64_t r, int64_t H) { return std::min<int64_t>(std::max<int64_t>(r, 0), H - 1); }
+
+template <typename S> struct Columns {
+    std::vector<int64_t> lo, hi;
+    std::vector<S> t;
+    explicit Columns(const Dims &s) : lo(s.W), hi(s.W), t(s.W) {
+        for (int64_t x = 0; x < s.W; ++x) {
+            const Stencil st = stencil(x, s.r, s.w);
+            lo[x] = st.lo;
+            hi[x] = st.hi;
+            t[x] = static_cast<S>(st.t);
+        }
+    }
+};
+
+// dst[x] = bilinear weight of kernel tap k at pixel row y (stencil sy), for x in [0, W)
+template <typename S>
+inline void weight_row(S *__restrict__ dst, S *__restrict__ mix, const S *grid_k, const Stencil &sy,
+                       const Columns<S> &cols, const Dims &s) {
+    const S ty = static_cast<S>(sy.t);
+    const S *a = grid_k + sy.lo * s.w;
+    const S *b = grid_k + sy.hi * s.w;
+    for (int64_t gx = 0; gx < s.w; ++gx) mix[gx] = a[gx] + ty * (b[gx] - a[gx]);
+    for (int64_t x = 0; x < s.W; ++x) {
+        const S l = mix[cols.lo[x]];
+        dst[x] = l + cols.t[x] * (mix[cols.hi[x]] - l);
+    }
+}
+
+// dst[x] += w[x] * src[clamp(x + d)]
+template <typename S>
+inline void shifted_fma(S *__restrict__ dst, const S *__restrict__ w, const S *__restrict__ src, int64_t W,
+                        int64_t d, int64_t lo, int64_t hi) {
+    const S first = src[0], last = src[W - 1];
+    for (int64_t x = 0; x < lo; ++x) dst[x] += w[x] * first;
+    const S *sp = src + lo + d;
+    S *o = dst + lo;
+    const S *ww = w + lo;
+    const int64_t n = hi - lo;
+    for (int64_t x = 0; x < n; ++x) o[x] += ww[x] * sp[x];
+    for (int64_t x = hi; x < W; ++x) dst[x] += w[x] * last;
+}
+
+// dst[clamp(x + d)] += w[x] * g[x]
+template <typename S>
+inline void shifted_fma_adjoint(S *__restrict__ dst, const S *__restrict__ w, const S *__restrict__ g, int64_t W,
+                                int64_t d, int64_t lo, int64_t hi) {
+    S first = 0, last = 0;
+    for (int64_t x = 0; x < lo; ++x) first += w[x] * g[x];
+    for (int64_t x = hi; x < W; ++x) last += w[x] * g[x];
+    S *o = dst + lo + d;
+    const S *ww = w + lo;
+    const S *gg = g + lo;
+    const int64_t n = hi - lo;
+    for (int64_t x = 0; x < n; ++x) o[x] += ww[x] * gg[x];
+    dst[0] += first;
+    dst[W - 1] += last;
+}
+
+template <typename S>
+void forward_rows(const S *img, const S *grid, S *out, const Dims &s, int64_t begin, int64_t end) {
+    const Columns<S> cols(s);
+    std::vector<S> wrow(s.W), mix(s.w);
+    for (int64_t row = begin; row < end; ++row) {
+        const int64_t b = row / s.H, y = row % s.H;
+        const Stencil sy = stencil(y, s.r, s.h);
+        const S *img_b = img + b * s.C * s.HW;
+        const S *grid_b = grid + b * s.K * s.K * s.hw;
+        S *out_row = out + b * s.C * s.HW + y * s.W;
+        for (int64_t c = 0; c < s.C; ++c) std::fill(out_row + c * s.HW, out_row + c * s.HW + s.W, S(0));
+        for (int64_t i = 0; i < s.K; ++i) {
+            const int64_t ys = clamp_row(y + i - s.p, s.H);
+            for (int64_t j = 0; j < s.K; ++j) {
+                const int64_t d = j - s.p;
+                int64_t lo, hi;
+                interior(s.W, d, lo, hi);
+                weight_row(wrow.data(), mix.data(), grid_b + (i * s.K + j) * s.hw, sy, cols, s);
+                for (int64_t c = 0; c < s.C; ++c)
+                    shifted_fma(out_row + c * s.HW, wrow.data(), img_b + c * s.HW + ys * s.W, s.W, d, lo, hi);
+            }
+        }
+    }
+}
+
+template <typename S>
+void grad_image_rows(const S *grid, const S *g, S *gi, const Dims &s, int64_t begin, int64_t end) {
+    const Columns<S> cols(s);
+    std::vector<S> wrow(s.W), mix(s.w);
+    for (int64_t row = begin; row < end; ++row) {
+        const int64_t b = row / s.H, ys = row % s.H;
+        const S *grid_b = grid + b * s.K * s.K * s.hw;
+        const S *g_b = g + b * s.C * s.HW;
+        S *gi_row = gi + b * s.C * s.HW + ys * s.W;
+        for (int64_t c = 0; c < s.C; ++c) std::fill(gi_row + c * s.HW, gi_row + c * s.HW + s.W, S(0));
+        for (int64_t i = 0; i < s.K; ++i) {
+            // output rows y with clamp(y + i - p) == ys; the first / last source row also collect the margin
+            const int64_t y_lo = std::max<int64_t>(ys == 0 ? 0 : ys - i + s.p, 0);
+            const int64_t y_hi = std::min<int64_t>(ys == s.H - 1 ? s.H - 1 : ys - i + s.p, s.H - 1);
+            for (int64_t y = y_lo; y <= y_hi; ++y) {
+                const Stencil sy = stencil(y, s.r, s.h);
+                for (int64_t j = 0; j < s.K; ++j) {
+                    const int64_t d = j - s.p;
+                    int64_t lo, hi;
+                    interior(s.W, d, lo, hi);
+                    weight_row(wrow.data(), mix.data(), grid_b + (i * s.K + j) * s.hw, sy, cols, s);
+                    for (int64_t c = 0; c < s.C; ++c)
+                        shifted_fma_adjoint(gi_row + c * s.HW, wrow.data(), g_b + c * s.HW + y * s.W, s.W, d, lo, hi);
+                }
+            }
+        }
+    }
+}
+
+// Pass 1 of grad_grid, iteration (b, y): cols[b, y, k, :] = the column-interpolation adjoint of the gradient of
+// pixel row y's tap k, sum_c g[c, y, x] * image[c, clamp(y + i - p), clamp(x + j - p)].
+template <typename S>
+void grad_columns_rows(const S *img, const S *g, S *colsum, const Dims &s, int64_t begin, int64_t end) {
+    const Columns<S> cols(s);
+    std::vector<S> prod(s.W);
+    for (int64_t row = begin; row < end; ++row) {
+        const int64_t b = row / s.H, y = row % s.H;
+        const S *img_b = img + b * s.C * s.HW;
+        const S *g_row = g + b * s.C * s.HW + y * s.W;
+        S *out = colsum + row * s.K * s.K * s.w;
+        std::fill(out, out + s.K * s.K * s.w, S(0));
+        for (int64_t i = 0; i < s.K; ++i) {
+            const int64_t ys = clamp_row(y + i - s.p, s.H);
+            for (int64_t j = 0; j < s.K; ++j) {
+                const int64_t d = j - s.p;
+                int64_t lo, hi;
+                interior(s.W, d, lo, hi);
+                std::fill(prod.begin(), prod.end(), S(0));
+                for (int64_t c = 0; c < s.C; ++c)
+                    shifted_fma(prod.data(), g_row + c * s.HW, img_b + c * s.HW + ys * s.W, s.W, d, lo, hi);
+                S *dst = out + (i * s.K + j) * s.w;
+                for (int64_t x = 0; x < s.W; ++x) {
+                    dst[cols.lo[x]] += (S(1) - cols.t[x]) * prod[x];
+                    dst[cols.hi[x]] += cols.t[x] * prod[x];
+                }
+            }
+        }
+    }
+}
+
+// Pass 2 of grad_grid, iteration (b, gy): grad_grid[b, :, gy, :] = sum over the pixel rows y whose row stencil reads
+// grid row gy of its weight times cols[b, y].
+template <typename S>
+void grad_grid_rows(const S *colsum, S *gg, const Dims &s, int64_t begin, int64_t end) {
+    const int64_t KK = s.K * s.K;
+    for (int64_t row = begin; row < end; ++row) {
+        const int64_t b = row / s.h, gy = row % s.h;
+        S *gg_b = gg + b * KK * s.hw + gy * s.w;
+        for (int64_t k = 0; k < KK; ++k) std::fill(gg_b + k * s.hw, gg_b + k * s.hw + s.w, S(0));
+        const int64_t y_first = std::max<int64_t>((gy - 2) * s.r, 0);
+        const int64_t y_last = std::min<int64_t>((gy + 3) * s.r, s.H - 1);
+        for (int64_t y = y_first; y <= y_last; ++y) {
+            const Stencil sy = stencil(y, s.r, s.h);
+            S weight = 0;
+            if (sy.lo == gy) weight += static_cast<S>(1.0 - sy.t);
+            if (sy.hi == gy) weight += static_cast<S>(sy.t);
+            if (sy.lo != gy && sy.hi != gy) continue;
+            const S *src = colsum + (b * s.H + y) * KK * s.w;
+            for (int64_t k = 0; k < KK; ++k) {
+                S *dst = gg_b + k * s.hw;
+                const S *sk = src + k * s.w;
+                for (int64_t gx = 0; gx < s.w; ++gx) dst[gx] += weight * sk[gx];
+            }
+        }
+    }
+}
+
+Dims check(const Tensor &image, const Tensor &grid, int64_t K, int64_t r) {
+    TORCH_CHECK(image.dim() == 4 && grid.dim() == 4, "image and grid weights must be 4-D");
+    TORCH_CHECK(K >= 1 && K % 2 == 1, "kernel_size must be odd and positive, got ", K);
+    TORCH_CHECK(r >= 1, "factor must be >= 1, got ", r);
+    TORCH_CHECK(image.is_contiguous() && grid.is_contiguous(), "image and grid weights must be contiguous");
+    TORCH_CHECK(image.scalar_type() == grid.scalar_type(), "image and grid weights must share a dtype");
+    const int64_t B = image.size(0), C = image.size(1), H = image.size(2), W = image.size(3);
+    const int64_t h = grid.size(2), w = grid.size(3);
+    TORCH_CHECK(grid.size(0) == B && grid.size(1) == K * K && h >= 1 && w >= 1,
+                "grid weights: expected shape [", B, ", ", K * K, ", h, w], got ", grid.sizes());
+    TORCH_CHECK(H >= 1 && W >= 1, "image must have H >= 1 and W >= 1");
+    return Dims{B, C, H, W, K, K / 2, H * W, h, w, h * w, r};
+}
+
+}  // namespace
+
+Tensor grid_kernels_fwd(const Tensor &image, const Tensor &grid, int64_t kernel_size, int64_t factor) {
+    const Dims s = check(image, grid, kernel_size, factor);
+    Tensor out = at::empty(image.sizes(), image.options());
+    AT_DISPATCH_FLOATING_TYPES(image.scalar_type(), "grid_kernels_fwd", [&] {
+        const scalar_t *img = image.const_data_ptr<scalar_t>();
+        const scalar_t *grd = grid.const_data_ptr<scalar_t>();
+        scalar_t *o = out.mutable_data_ptr<scalar_t>();
+        at::parallel_for(0, s.B * s.H, 1, [&](int64_t begin, int64_t end) {
+            forward_rows<scalar_t>(img, grd, o, s, begin, end);
+        });
+    });
+    return out;
+}
+
+std::tuple<std::optional<Tensor>, std::optional<Tensor>> grid_kernels_bwd(
+    const Tensor &grad_out, const Tensor &image, const Tensor &grid, int64_t kernel_size, int64_t factor,
+    bool need_image, bool need_grid
+) {
+    const Dims s = check(image, grid, kernel_size, factor);
+    TORCH_CHECK(grad_out.is_contiguous() && grad_out.sizes() == image.sizes() &&
+                    grad_out.scalar_type() == image.scalar_type(),
+                "grad_out must be contiguous with the image's shape and dtype");
+    Tensor grad_image, grad_grid;
+    if (need_image) grad_image = at::empty(image.sizes(), image.options());
+    if (need_grid) grad_grid = at::empty(grid.sizes(), grid.options());
+    AT_DISPATCH_FLOATING_TYPES(image.scalar_type(), "grid_kernels_bwd", [&] {
+        const scalar_t *img = image.const_data_ptr<scalar_t>();
+        const scalar_t *grd = grid.const_data_ptr<scalar_t>();
+        const scalar_t *g = grad_out.const_data_ptr<scalar_t>();
+        if (need_grid) {
+            scalar_t *gg = grad_grid.mutable_data_ptr<scalar_t>();
+            // [B, H, K*K, w]: every pixel row's tap gradients, already reduced over the columns (H / h times the
+            // grid's size, far smaller than the [B, K*K, H, W] weights)
+            Tensor colsum = at::empty({s.B, s.H, s.K * s.K, s.w}, grid.options());
+            scalar_t *cs = colsum.mutable_data_ptr<scalar_t>();
+            at::parallel_for(0, s.B * s.H, 1, [&](int64_t begin, int64_t end) {
+                grad_columns_rows<scalar_t>(img, g, cs, s, begin, end);
+            });
+            at::parallel_for(0, s.B * s.h, 1, [&](int64_t begin, int64_t end) {
+                grad_grid_rows<scalar_t>(cs, gg, s, begin, end);
+            });
+        }
+        if (need_image) {
+            scalar_t *gi = grad_image.mutable_data_ptr<scalar_t>();
+            at::parallel_for(0, s.B * s.H, 1, [&](int64_t begin, int64_t end) {
+                grad_image_rows<scalar_t>(grd, g, gi, s, begin, end);
+            });
+        }
+    });
+    std::optional<Tensor> gi_out, gg_out;
+    if (need_image) gi_out = grad_image;
+    if (need_grid) gg_out = grad_grid;
+    return {gi_out, gg_out};
+}
+
+}  // namespace gsmsdr_grid
+
+TORCH_LIBRARY(gsmsdr_grid, m) {
+    m.def("grid_kernels_fwd(Tensor image, Tensor grid, int kernel_size, int factor) -> Tensor");
+    m.def(
+        "grid_kernels_bwd(Tensor grad_out, Tensor image, Tensor grid, int kernel_size, int factor, bool need_image, "
+        "bool need_grid) -> (Tensor?, Tensor?)"
+    );
+}
+
+TORCH_LIBRARY_IMPL(gsmsdr_grid, CPU, m) {
+    m.impl("grid_kernels_fwd", &gsmsdr_grid::grid_kernels_fwd);
+    m.impl("grid_kernels_bwd", &gsmsdr_grid::grid_kernels_bwd);
+}
