@@ -100,8 +100,8 @@ def _fallback_advice(path: Path) -> str:
     older = sorted(step for step in checkpoint_steps(path.parent) if checkpoint_file(path.parent, step) != path)
     if older:
         previous = checkpoint_file(path.parent, older[-1])
-        return (f"Delete it and load the previous checkpoint '{previous.name}' (--load-step {older[-1]}, or "
-                f"--load-checkpoint {previous}).")  # fmt: skip
+        return (f"Delete it to use the previous checkpoint '{previous.name}' (ns-eval and --load-dir then take "
+                f"the latest one left; ns-train also takes --load-step {older[-1]}).")  # fmt: skip
     return "Delete it and train again (or resume from another run's checkpoint with --load-checkpoint)."
 
 
@@ -132,10 +132,11 @@ def find_checkpoint(load_dir: Path, load_step: Optional[int] = None, nerfstudio_
     (which parses a step number out of every name in the folder) would fail on.
     """
     load_dir = Path(load_dir)
-    where = "checkpoints are written to <run>/nerfstudio_models (outputs/<scene>/<method>/<timestamp>/nerfstudio_models)"
+    where = ("checkpoints are written to <run>/nerfstudio_models "
+             "(outputs/<scene>/<method>/<timestamp>/nerfstudio_models)")
     if load_dir.is_file():
-        raise InputError(f"gsmsdr: '{load_dir}' is a file; --load-dir takes the folder of checkpoints ({where}). "
-                         "To load one file, pass it with --load-checkpoint instead.")  # fmt: skip
+        raise InputError(f"gsmsdr: '{load_dir}' is a file; --load-dir takes a folder of checkpoints "
+                         "(<run>/nerfstudio_models). To load one file, pass it with --load-checkpoint instead.")
     if not load_dir.is_dir():
         raise InputError(f"gsmsdr: checkpoint folder '{load_dir}' does not exist; {where}.")
     steps = checkpoint_steps(load_dir)
@@ -306,7 +307,9 @@ def preset_of(state: Mapping[str, torch.Tensor]) -> Optional[str]:
 
 
 def check_state_dict_shapes(
-    model_state: Mapping[str, torch.Tensor], checkpoint_state: Mapping[str, torch.Tensor], resized: str = "gauss_params."
+    model_state: Mapping[str, torch.Tensor],
+    checkpoint_state: Mapping[str, torch.Tensor],
+    resized: str = "gauss_params.",
 ) -> None:
     """Raise :class:`CheckpointMismatchError` when a tensor of ``checkpoint_state`` has another shape than the
     model's (tensors under ``resized``, which loading resizes to the checkpoint's count: their other dimensions).
