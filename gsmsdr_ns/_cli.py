@@ -1,8 +1,15 @@
-"""What the dataset-writing console scripts (`gsmsdr-synth`, `gsmsdr-degrade`) share: --preset lookup before tyro
-parses, and the entry-point wrapper (SIGTERM handling, one-line errors)."""
+"""What the console scripts share: --preset lookup before tyro parses, the entry-point wrapper (SIGTERM handling,
+one-line errors, Ctrl-C) and the exception hook that prints gsmsdr's own errors without a traceback.
+
+Errors of the classes in :data:`USER_ERRORS` are meant for the person running the command: their message names the
+file or value and says what to do, so a traceback only hides it. They print as one line, in our CLIs and (through
+:func:`install_excepthook`, which importing ``gsmsdr_ns.plugin`` runs) in ``ns-train``, ``ns-eval`` and
+``ns-viewer``. ``GSMSDR_DEBUG=1`` in the environment brings the traceback back; other exceptions always keep it.
+"""
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 from collections.abc import Callable, Sequence
@@ -10,6 +17,49 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.markup import escape
+
+from gsmsdr_ns.io.errors import DiskFullError, InputError
+
+USER_ERRORS = (InputError, DiskFullError)
+"""Exception classes printed as one clean line (``<ClassName>: <message>``) instead of a traceback."""
+
+DEBUG_ENV = "GSMSDR_DEBUG"
+"""Environment variable: set to 1 to get the traceback of :data:`USER_ERRORS` too."""
+
+INTERRUPT_EXIT_STATUS = 130
+"""Exit status after Ctrl-C (128 + SIGINT), as shells report it."""
+
+NOTHING_WRITTEN = "interrupted; nothing was written"
+"""What the writers that build their output in a temporary path and rename it at the end print on Ctrl-C."""
+
+
+def debug_tracebacks() -> bool:
+    """True when ``GSMSDR_DEBUG`` asks for full tracebacks of our own errors."""
+    return os.environ.get(DEBUG_ENV, "").strip().lower() not in ("", "0", "false", "no")
+
+
+def user_error_line(exc: BaseException) -> str:
+    """The one line an error of :data:`USER_ERRORS` prints as: ``InputError: gsmsdr: ...``."""
+    return f"{type(exc).__name__}: {exc}"
+
+
+def _print_user_errors(previous: Callable) -> Callable:
+    def hook(exc_type, exc, tb) -> None:
+        if issubclass(exc_type, USER_ERRORS) and not debug_tracebacks():
+            print(user_error_line(exc), file=sys.stderr, flush=True)
+            return
+        previous(exc_type, exc, tb)
+
+    hook.gsmsdr_user_errors = True  # type: ignore[attr-defined]  # marks the hook as installed (idempotence)
+    return hook
+
+
+def install_excepthook() -> None:
+    """Make an uncaught error of :data:`USER_ERRORS` print as one line; every other exception goes to the hook that
+    was installed before (the interpreter's traceback). Idempotent."""
+    if not getattr(sys.excepthook, "gsmsdr_user_errors", False):
+        sys.excepthook = _print_user_errors(sys.excepthook)
 
 
 def preset_from_argv(argv: Sequence[str]) -> Path | None:
@@ -28,12 +78,22 @@ def _exit_on_sigterm(signum, _frame) -> None:
     raise SystemExit(128 + signum)
 
 
-def run_entrypoint(parse: Callable[[], Any], console: Console) -> None:
-    """Run `parse().main()` as a console script: SIGTERM exits through the cleanup code, and a FileExistsError,
-    FileNotFoundError or ValueError is printed as one red "error:" line with exit status 1."""
+def run_entrypoint(parse: Callable[[], Any], console: Console, interrupted: str = NOTHING_WRITTEN) -> None:
+    """Run ``parse().main()`` as a console script.
+
+    SIGTERM exits through the cleanup code. Ctrl-C prints ``interrupted`` (one line: what was kept, if anything) and
+    exits with status 130. An error of :data:`USER_ERRORS`, a FileExistsError, FileNotFoundError or ValueError is
+    printed as one red "error:" line with exit status 1 (with ``GSMSDR_DEBUG=1``: re-raised, with its traceback).
+    """
     signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
         parse().main()
-    except (FileExistsError, FileNotFoundError, ValueError) as e:
-        console.print(f"[bold red]error:[/bold red] {e}")
+    except KeyboardInterrupt:
+        # The writers' cleanup has already run while the KeyboardInterrupt unwound to here.
+        console.print(f"[bold red]{escape(interrupted)}[/bold red]", highlight=False, soft_wrap=True)
+        sys.exit(INTERRUPT_EXIT_STATUS)
+    except (*USER_ERRORS, FileExistsError, FileNotFoundError, ValueError) as e:
+        if debug_tracebacks():
+            raise
+        console.print(f"[bold red]error:[/bold red] {escape(str(e))}", highlight=False, soft_wrap=True)
         sys.exit(1)

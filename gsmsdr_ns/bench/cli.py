@@ -183,7 +183,16 @@ def entrypoint(argv: Optional[Sequence[str]] = None) -> None:
     raw = list(sys.argv[1:] if argv is None else argv)
     _ARGS[:] = raw
     description = "gsmsdr benchmarks. `gsmsdr-bench --quick` runs the quick suite (= `suite --config quick`)."
-    tyro.extras.subcommand_cli_from_dict(SUBCOMMANDS, args=map_quick(raw), description=description).main()
+    from rich.console import Console
+
+    from gsmsdr_ns._cli import run_entrypoint
+
+    # The suite prints what it kept itself and exits 130; this line covers the other benchmarks and the start-up.
+    interrupted = "interrupted; tables were not printed, a suite's finished runs are kept in its runs/ folder"
+    def parse():
+        return tyro.extras.subcommand_cli_from_dict(SUBCOMMANDS, args=map_quick(raw), description=description)
+
+    run_entrypoint(parse, Console(stderr=True), interrupted=interrupted)
 
 
 if __name__ == "__main__":

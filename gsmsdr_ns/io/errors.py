@@ -9,3 +9,7 @@ class InputError(ValueError):
 
 class InputWarning(UserWarning):
     """Input that is usable, but only after a guess (a default hold, unknown degradations, ...)."""
+
+
+class DiskFullError(OSError):
+    """No space left for an output; the message names the file and says how to free space or write elsewhere."""

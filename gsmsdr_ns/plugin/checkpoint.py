@@ -1,4 +1,13 @@
-"""Make nerfstudio checkpoints load under torch >= 2.6 (``torch.load(..., weights_only=True)`` by default).
+"""nerfstudio checkpoints: loading under torch >= 2.6, finding, checking, reading and writing them atomically.
+
+* :func:`find_checkpoint`, :func:`check_checkpoint_file`, :func:`load_checkpoint_file`: the file ``--load-dir`` /
+  ``--load-checkpoint`` mean, with an :class:`InputError` naming the file and what to do when it is missing,
+  empty, truncated or damaged, or when the folder is not a checkpoint folder.
+* :func:`save_checkpoint_atomic`: temporary file, fsync, rename; a full disk raises :class:`DiskFullError`.
+* :func:`check_state_dict_shapes`: a checkpoint of another preset (``gsmsdr`` / ``gsmsdr-lite``) raises
+  :class:`CheckpointMismatchError` naming the widths of both instead of torch's size-mismatch list.
+
+Loading under ``torch.load(..., weights_only=True)`` (torch's default since 2.6):
 
 What a nerfstudio 1.1.5 checkpoint holds that the weights-only unpickler refuses (as
 ``torch.serialization.get_unsafe_globals_in_checkpoint`` lists them for a ``gsmsdr`` checkpoint): numpy float64 scalars.
@@ -16,10 +25,20 @@ discovering methods (``ns-train``, ``ns-eval``, ``ns-viewer``) and while reading
 
 from __future__ import annotations
 
-from typing import List
+import errno
+import math
+import os
+import re
+import secrets
+import shutil
+import zipfile
+from pathlib import Path
+from typing import Any, Dict, List, Mapping, Optional
 
 import numpy as np
 import torch
+
+from gsmsdr_ns.io.errors import DiskFullError, InputError
 
 
 def checkpoint_safe_globals() -> List[object]:
@@ -41,3 +60,283 @@ def register_checkpoint_safe_globals() -> None:
     missing = [g for g in checkpoint_safe_globals() if id(g) not in already]
     if missing:
         add_safe_globals(missing)
+
+
+# -- finding, reading and writing checkpoint files ---------------------------------------------------------------
+
+CHECKPOINT_NAME = re.compile(r"^step-(\d+)\.ckpt$")
+"""nerfstudio's checkpoint file name: ``step-<step, 9 digits>.ckpt`` in ``<run>/nerfstudio_models``."""
+
+_CUT_OFF = "it was cut off while being written (a full disk, or a run killed while saving)"
+
+
+def checkpoint_file(checkpoint_dir: Path, step: int) -> Path:
+    """``<checkpoint_dir>/step-<step:09d>.ckpt``, the name nerfstudio writes and reads."""
+    return Path(checkpoint_dir) / f"step-{step:09d}.ckpt"
+
+
+def checkpoint_steps(checkpoint_dir: Path) -> Dict[int, Path]:
+    """The checkpoints in ``checkpoint_dir`` by step (files named like nerfstudio's; anything else is ignored)."""
+    found = {}
+    for path in Path(checkpoint_dir).iterdir():
+        match = CHECKPOINT_NAME.match(path.name)
+        if match and path.is_file():
+            found[int(match.group(1))] = path
+    return found
+
+
+def _names_nerfstudio_cannot_parse(checkpoint_dir: Path) -> List[str]:
+    # nerfstudio's loaders take the latest step as int(name[name.find("-") + 1 : name.find(".")]) of *every* entry
+    bad = []
+    for name in sorted(os.listdir(checkpoint_dir)):
+        try:
+            int(name[name.find("-") + 1 : name.find(".")])
+        except ValueError:
+            bad.append(name)
+    return bad
+
+
+def _fallback_advice(path: Path) -> str:
+    older = sorted(step for step in checkpoint_steps(path.parent) if checkpoint_file(path.parent, step) != path)
+    if older:
+        previous = checkpoint_file(path.parent, older[-1])
+        return (f"Delete it to use the previous checkpoint '{previous.name}' (ns-eval and --load-dir then take "
+                f"the latest one left; ns-train also takes --load-step {older[-1]}).")  # fmt: skip
+    return "Delete it and train again (or resume from another run's checkpoint with --load-checkpoint)."
+
+
+def check_checkpoint_file(path: Path) -> Path:
+    """Raise :class:`InputError` naming ``path`` (and what to do) when it is missing, empty or truncated.
+
+    A torch checkpoint is a zip archive whose index sits at its end, so a file cut off while being written lacks it:
+    that is checked here without reading the tensors.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"gsmsdr: checkpoint '{path}' does not exist.")
+    size = path.stat().st_size
+    if size == 0:
+        raise InputError(f"gsmsdr: checkpoint '{path}' is empty (0 bytes): {_CUT_OFF}. {_fallback_advice(path)}")
+    if not zipfile.is_zipfile(path):
+        raise InputError(f"gsmsdr: checkpoint '{path}' is truncated or not a torch checkpoint ({size} bytes, no zip "
+                         f"index at its end): {_CUT_OFF}. {_fallback_advice(path)}")  # fmt: skip
+    return path
+
+
+def find_checkpoint(load_dir: Path, load_step: Optional[int] = None, nerfstudio_names: bool = False) -> Path:
+    """The checkpoint ``--load-dir load_dir`` (``--load-step load_step``, default: the latest) means, checked.
+
+    Raises :class:`InputError` saying where checkpoints are expected when ``load_dir`` does not exist, is a run folder
+    (``<run>`` instead of ``<run>/nerfstudio_models``) or holds no ``step-*.ckpt``; and, for the file chosen, what
+    :func:`check_checkpoint_file` checks. ``nerfstudio_names``: also reject entries that nerfstudio's own loader
+    (which parses a step number out of every name in the folder) would fail on.
+    """
+    load_dir = Path(load_dir)
+    where = ("checkpoints are written to <run>/nerfstudio_models "
+             "(outputs/<scene>/<method>/<timestamp>/nerfstudio_models)")
+    if load_dir.is_file():
+        raise InputError(f"gsmsdr: '{load_dir}' is a file; --load-dir takes a folder of checkpoints "
+                         "(<run>/nerfstudio_models). To load one file, pass it with --load-checkpoint instead.")
+    if not load_dir.is_dir():
+        raise InputError(f"gsmsdr: checkpoint folder '{load_dir}' does not exist; {where}.")
+    steps = checkpoint_steps(load_dir)
+    if not steps:
+        models = load_dir / "nerfstudio_models"
+        if models.is_dir():
+            raise InputError(f"gsmsdr: '{load_dir}' is a run folder; its checkpoints are expected in '{models}'. "
+                             f"Pass --load-dir {models}.")  # fmt: skip
+        raise InputError(f"gsmsdr: no checkpoint (step-*.ckpt) in '{load_dir}'; {where} every --steps-per-save "
+                         "steps and when training ends. Point --load-dir at such a folder.")  # fmt: skip
+    if nerfstudio_names:
+        bad = _names_nerfstudio_cannot_parse(load_dir)
+        if bad:
+            raise InputError(f"gsmsdr: '{load_dir / bad[0]}' is not a checkpoint (step-<step>.ckpt); nerfstudio "
+                             "reads a step number from every name in the checkpoint folder. Move it out of "
+                             f"'{load_dir}'.")  # fmt: skip
+    if load_step is None:
+        load_step = max(steps)
+    if load_step not in steps:
+        raise InputError(f"gsmsdr: no checkpoint of step {load_step} in '{load_dir}' (it has steps "
+                         f"{sorted(steps)}); pass one of them with --load-step.")  # fmt: skip
+    return check_checkpoint_file(steps[load_step])
+
+
+def load_checkpoint_file(path: Path) -> Dict[str, Any]:
+    """``torch.load(path, map_location="cpu")`` after :func:`check_checkpoint_file`; a file torch cannot read
+    (corrupt inside) raises :class:`InputError` naming it."""
+    path = check_checkpoint_file(path)
+    try:
+        return torch.load(path, map_location="cpu")
+    except (RuntimeError, EOFError, zipfile.BadZipFile) as e:
+        # torch's first sentence says what is missing; the rest is generic advice
+        reason = str(e).strip().split(". ")[0].splitlines()[0] if str(e).strip() else type(e).__name__
+        raise InputError(f"gsmsdr: cannot read checkpoint '{path}' ({reason}): the file is damaged. "
+                         f"{_fallback_advice(path)}") from e  # fmt: skip
+
+
+def _format_bytes(n: float) -> str:
+    for unit in ("bytes", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} GiB"
+
+
+def _disk_full_error(path: Path, error: OSError) -> DiskFullError:
+    try:
+        free = f"{_format_bytes(shutil.disk_usage(path.parent).free)} free"
+    except OSError:
+        free = "free space unknown"
+    full = DiskFullError(
+        f"gsmsdr: no space left on the disk to save checkpoint '{path}' ({free}); nothing was written, the "
+        f"checkpoints already in '{path.parent}' are kept. Free some space, or train with --output-dir on a disk "
+        f"with room (resume with --load-dir {path.parent})."
+    )
+    full.errno = error.errno  # without strerror, which would make str() the "[Errno 28] ..." form
+    return full
+
+
+def save_checkpoint_atomic(payload: Mapping[str, Any], path: Path) -> Path:
+    """``torch.save(payload, path)`` that never leaves a partial ``path``: written to a hidden temporary file,
+    fsynced, then renamed over ``path``.
+
+    The temporary file sits in the folder above ``path`` (same file system, so the rename is atomic) rather than
+    next to it: nerfstudio's loaders parse a step number out of every name in the checkpoint folder, so a temporary
+    file left by a killed run must not be there. A full disk (ENOSPC / EDQUOT) raises :class:`DiskFullError` naming
+    ``path``; any error removes the temporary file.
+    """
+    path = Path(path)
+    tmp = path.parent.parent / f".{path.parent.name}.{path.name}.partial-{os.getpid()}-{secrets.token_hex(4)}"
+    try:
+        # A Python file object (not a path) makes torch report a failed write as the OSError it is.
+        with open(tmp, "wb") as f:
+            torch.save(dict(payload), f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as e:
+        tmp.unlink(missing_ok=True)
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise _disk_full_error(path, e) from e
+        raise
+    _fsync_dir(path.parent)
+    return path
+
+
+def _fsync_dir(folder: Path) -> None:
+    # Makes the rename itself durable; not every file system can open a folder for that (best effort).
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+# -- a checkpoint of another preset ------------------------------------------------------------------------------
+
+_BLUR_FIELD = "degradation.blur_field."
+_KERNEL_HEAD = re.compile(r"^degradation\.blur_field\.heads\.blur\.(\d+)\.weight$")
+
+
+class CheckpointMismatchError(InputError):
+    """A checkpoint whose tensors do not fit the model this config builds (another preset or scene)."""
+
+    def __init__(self, what: str, method: Optional[str] = None, path: Optional[Path] = None, scene: bool = False):
+        self.what, self.method, self.path, self.scene = what, method, path, scene
+        name = f"checkpoint '{path}'" if path is not None else "the checkpoint"
+        load_with = f"`ns-train {method}`" if method else "the method and flags it was trained with"
+        where = " on the scene it was trained on" if scene else ""
+        super().__init__(f"gsmsdr: {name} {what}; load it with {load_with}{where}.")
+
+    def for_file(self, path: Path, method: Optional[str] = None) -> "CheckpointMismatchError":
+        """The same error naming the checkpoint file, and the method its run used when known (its config.yml)."""
+        return CheckpointMismatchError(self.what, method or self.method, path, self.scene)
+
+
+def _first_dim(state: Mapping[str, torch.Tensor], key: str, dim: int) -> Optional[int]:
+    value = state.get(key)
+    return int(value.shape[dim]) if isinstance(value, torch.Tensor) and value.dim() > dim else None
+
+
+def _sh_degree(state: Mapping[str, torch.Tensor]) -> Optional[int]:
+    coefficients = _first_dim(state, "gauss_params.features_rest", 1)
+    return None if coefficients is None else round(math.sqrt(coefficients + 1)) - 1
+
+
+def _blur_field_widths(state: Mapping[str, torch.Tensor]) -> Dict[str, Any]:
+    widths = {
+        "n": _first_dim(state, _BLUR_FIELD + "mcf.rgbd.sfe.weight", 0),
+        "view": _first_dim(state, _BLUR_FIELD + "mcf.view_embedding.weight", 1),
+        "mid": _first_dim(state, _BLUR_FIELD + "heads.base.1.0.weight", 0),
+    }
+    heads = {int(m.group(1)): v for k, v in state.items() if (m := _KERNEL_HEAD.match(k))}
+    if heads:  # scale 1 is the finest; list coarse to fine like BlurFieldConfig.kernel_sizes
+        widths["kernels"] = "/".join(str(round(math.sqrt(heads[s].shape[0]))) for s in sorted(heads, reverse=True))
+    return {name: value for name, value in widths.items() if value is not None}
+
+
+def describe_model_widths(state: Mapping[str, torch.Tensor]) -> str:
+    """The widths a gsmsdr model state dict was built with, as text (``blur field n=32, view 32, mid 64, kernels
+    5/9/17; SH degree 3``): what differs between the ``gsmsdr`` and ``gsmsdr-lite`` presets."""
+    parts = []
+    field = _blur_field_widths(state)
+    if field:
+        parts.append("blur field " + ", ".join(f"{k}={v}" if k == "n" else f"{k} {v}" for k, v in field.items()))
+    degree = _sh_degree(state)
+    if degree is not None:
+        parts.append(f"SH degree {degree}")
+    return "; ".join(parts) or "no blur field"
+
+
+def preset_of(state: Mapping[str, torch.Tensor]) -> Optional[str]:
+    """``"gsmsdr"`` / ``"gsmsdr-lite"`` when the state dict's blur-field width and SH degree are that preset's."""
+    from gsmsdr_ns.plugin.method_config import gsmsdr_lite_trainer_config, gsmsdr_trainer_config
+
+    n, degree = _blur_field_widths(state).get("n"), _sh_degree(state)
+    for make in (gsmsdr_trainer_config, gsmsdr_lite_trainer_config):
+        config = make()
+        model = config.pipeline.model
+        if degree == model.sh_degree and n in (None, model.blur_field.dims.feature_dim):
+            return config.method_name
+    return None
+
+
+def check_state_dict_shapes(
+    model_state: Mapping[str, torch.Tensor],
+    checkpoint_state: Mapping[str, torch.Tensor],
+    resized: str = "gauss_params.",
+) -> None:
+    """Raise :class:`CheckpointMismatchError` when a tensor of ``checkpoint_state`` has another shape than the
+    model's (tensors under ``resized``, which loading resizes to the checkpoint's count: their other dimensions).
+
+    The message names the widths of both (:func:`describe_model_widths`) and the preset the checkpoint matches,
+    instead of torch's list of every mismatched tensor.
+    """
+    mismatched = []
+    for key, value in checkpoint_state.items():
+        own = model_state.get(key)
+        if not isinstance(own, torch.Tensor) or not isinstance(value, torch.Tensor):
+            continue
+        theirs, ours = tuple(value.shape), tuple(own.shape)
+        if key.startswith(resized):
+            theirs, ours = theirs[1:], ours[1:]
+        if theirs != ours:
+            mismatched.append((key, tuple(value.shape), tuple(own.shape)))
+    if not mismatched:
+        return
+    trained, built = describe_model_widths(checkpoint_state), describe_model_widths(model_state)
+    method = preset_of(checkpoint_state)
+    if trained != built:
+        raise CheckpointMismatchError(f"was trained with other widths ({trained}) than this run's config builds "
+                                      f"({built})", method)  # fmt: skip
+    key, theirs, ours = mismatched[0]
+    raise CheckpointMismatchError(
+        f"does not fit this model: its '{key}' has shape {list(theirs)}, this model's {list(ours)} "
+        f"({len(mismatched)} tensor(s) differ), so it was trained on another scene (another number of training "
+        "views) or with other settings", method, scene=True,
+    )  # fmt: skip

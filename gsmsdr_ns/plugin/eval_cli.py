@@ -34,6 +34,9 @@ class EvalWithAlignment:
         import gsmsdr_ns.plugin  # noqa: F401  (checkpoint loading under torch's weights_only default)
         from nerfstudio.utils.eval_utils import eval_setup
 
+        if not self.load_config.is_file():
+            raise FileNotFoundError(f"gsmsdr-eval: config '{self.load_config}' does not exist; pass a run's "
+                                    "config.yml (outputs/<scene>/<method>/<timestamp>/config.yml).")  # fmt: skip
         config, pipeline, checkpoint_path, _ = eval_setup(self.load_config)
         columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
         with Progress(*columns, transient=True) as progress:
@@ -59,7 +62,12 @@ class EvalWithAlignment:
 
 
 def entrypoint() -> None:
-    tyro.cli(EvalWithAlignment).main()
+    """Console-script entry point: one-line errors, Ctrl-C exits 130 (the JSON is written only at the end)."""
+    from rich.console import Console
+
+    from gsmsdr_ns._cli import run_entrypoint
+
+    run_entrypoint(lambda: tyro.cli(EvalWithAlignment), Console(stderr=True))
 
 
 if __name__ == "__main__":

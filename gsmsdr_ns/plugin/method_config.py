@@ -9,6 +9,8 @@
 schedules shortened to match). Its field has half the channels of the default one, so a blurred-image step costs
 less; a sharp-image step does not run the field in either preset.
 
+Both train with :class:`GSMSDRTrainer` (nerfstudio's Trainer with atomic checkpoints and checked checkpoint loading).
+
 Runs on whatever device is there: ``machine.device_type`` defaults to CUDA when available, else CPU, so
 ``ns-train gsmsdr --data <scene>`` works on a CPU-only machine without extra flags.  Images are cached on the
 training device (``cache_images="gpu"`` means "the device" in nerfstudio; ``"cpu"`` would pin memory, which needs
@@ -21,13 +23,13 @@ import torch
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
-from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
 from gsmsdr_ns.blur.field import BlurFieldConfig
 from gsmsdr_ns.plugin.auto_dataparser import GSMSDRAutoDataParserConfig
 from gsmsdr_ns.plugin.datamanager import GSMSDRDatamanagerConfig
 from gsmsdr_ns.plugin.model import GSMSDRModelConfig
+from gsmsdr_ns.plugin.trainer import GSMSDRTrainerConfig
 
 MAX_STEPS = 30000
 LITE_MAX_STEPS = 7000
@@ -73,8 +75,8 @@ def gsmsdr_optimizers(max_steps: int = MAX_STEPS) -> dict:
     }
 
 
-def _trainer_config(method_name: str, model: GSMSDRModelConfig, max_steps: int) -> TrainerConfig:
-    return TrainerConfig(
+def _trainer_config(method_name: str, model: GSMSDRModelConfig, max_steps: int) -> GSMSDRTrainerConfig:
+    return GSMSDRTrainerConfig(
         method_name=method_name,
         steps_per_eval_image=100,
         steps_per_eval_batch=0,
@@ -97,13 +99,13 @@ def _trainer_config(method_name: str, model: GSMSDRModelConfig, max_steps: int) 
     )
 
 
-def gsmsdr_trainer_config() -> TrainerConfig:
-    """A fresh ``gsmsdr`` TrainerConfig (``ns-train gsmsdr``): the paper's set-up."""
+def gsmsdr_trainer_config() -> GSMSDRTrainerConfig:
+    """A fresh ``gsmsdr`` trainer config (``ns-train gsmsdr``): the paper's set-up."""
     return _trainer_config("gsmsdr", GSMSDRModelConfig(), MAX_STEPS)
 
 
-def gsmsdr_lite_trainer_config() -> TrainerConfig:
-    """A fresh ``gsmsdr-lite`` TrainerConfig (``ns-train gsmsdr-lite``): fast preset for CPU and previews."""
+def gsmsdr_lite_trainer_config() -> GSMSDRTrainerConfig:
+    """A fresh ``gsmsdr-lite`` trainer config (``ns-train gsmsdr-lite``): fast preset for CPU and previews."""
     model = GSMSDRModelConfig(
         sh_degree=1,
         resolution_schedule=1000,

@@ -53,6 +53,7 @@ from gsmsdr_ns.blur.profile import (
     ResolutionLossModel,
     training_profiles,
 )
+from gsmsdr_ns.plugin.checkpoint import check_state_dict_shapes
 from gsmsdr_ns.plugin.lpips import (
     LPIPSUnavailable,
     lpips_backbone_cache_path,
@@ -252,8 +253,10 @@ class GSMSDRModel(SplatfactoModel):
         splatfacto replaces the parameter objects here, which detaches them from optimizers created before loading
         (trainer resume): those would keep stepping the stale tensors. Keeping the objects avoids that. Checkpoints
         written before the degradation models moved into ``degradation`` load too (:func:`remap_legacy_keys`).
+        A checkpoint of another preset (other widths) raises ``CheckpointMismatchError`` naming both.
         """
         state_dict = remap_legacy_keys(state_dict, "degradation.")
+        check_state_dict_shapes(self.state_dict(), state_dict)
         count = state_dict["gauss_params.means"].shape[0]
         for param in self.gauss_params.values():
             param.data = param.data.new_zeros((count, *param.shape[1:]))

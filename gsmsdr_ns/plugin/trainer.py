@@ -1,0 +1,107 @@
+"""nerfstudio's Trainer with atomic checkpoints and checked checkpoint loading (the gsmsdr presets use it).
+
+* ``save_checkpoint`` writes the same file (``<run>/nerfstudio_models/step-<step:09d>.ckpt``, same contents) through
+  a temporary file, fsync and rename (:func:`save_checkpoint_atomic`), so a full disk or a kill never leaves a
+  truncated ``.ckpt``; a full disk raises :class:`DiskFullError` naming the file. ``save_only_latest_checkpoint``
+  deletes the older checkpoints only after the new one is complete.
+* ``_load_checkpoint`` (``ns-train --load-dir`` / ``--load-checkpoint``) finds and reads the file with
+  :func:`find_checkpoint` / :func:`load_checkpoint_file`: a missing, empty, truncated or damaged checkpoint, a
+  folder without checkpoints or a run folder given instead of its ``nerfstudio_models`` raise :class:`InputError`
+  naming the file and what to do; a checkpoint of the other preset names both presets' widths.
+* :class:`GSMSDRTrainerConfig` checks ``load_dir`` when it is assigned after construction: nerfstudio's
+  ``eval_setup`` (``ns-eval``, ``ns-viewer``, ``gsmsdr-eval``, ``gsmsdr-export``) does that right before its own
+  loader, which names no file when it fails.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Type
+
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils.decorators import check_main_thread
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from gsmsdr_ns.plugin.checkpoint import (
+    CheckpointMismatchError,
+    checkpoint_file,
+    find_checkpoint,
+    load_checkpoint_file,
+    save_checkpoint_atomic,
+)
+
+
+def trained_method(checkpoint: Path) -> Optional[str]:
+    """The ``method_name`` in the ``config.yml`` of the run a checkpoint belongs to (``<run>/nerfstudio_models/``),
+    or None when there is none. Read as text: loading the YAML would build the whole config."""
+    config = Path(checkpoint).parent.parent / "config.yml"
+    try:
+        match = re.search(r"^method_name: *['\"]?([\w.-]+)", config.read_text(encoding="utf8"), re.MULTILINE)
+    except (OSError, UnicodeDecodeError):
+        return None
+    return match.group(1) if match else None
+
+
+class GSMSDRTrainer(Trainer):
+    """nerfstudio's Trainer; checkpoints are written atomically and loaded with errors that name the file."""
+
+    config: "GSMSDRTrainerConfig"
+
+    @check_main_thread
+    def save_checkpoint(self, step: int) -> None:
+        """Save the pipeline, optimizers, schedulers and grad scaler as nerfstudio does, atomically."""
+        self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+        path = checkpoint_file(self.checkpoint_dir, step)
+        pipeline = self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
+        payload = {
+            "step": step,
+            "pipeline": pipeline.state_dict(),  # type: ignore[union-attr]
+            "optimizers": {k: v.state_dict() for (k, v) in self.optimizers.optimizers.items()},
+            "schedulers": {k: v.state_dict() for (k, v) in self.optimizers.schedulers.items()},
+            "scalers": self.grad_scaler.state_dict(),
+        }
+        save_checkpoint_atomic(payload, path)
+        if self.config.save_only_latest_checkpoint:
+            for old in self.checkpoint_dir.glob("*.ckpt"):
+                if old != path:
+                    old.unlink()
+
+    def _load_checkpoint(self) -> None:
+        """Load the pipeline, optimizers, schedulers and grad scaler from ``--load-dir`` / ``--load-checkpoint``."""
+        if self.config.load_dir is not None:
+            if self.config.load_step is None:
+                CONSOLE.print("Loading latest Nerfstudio checkpoint from load_dir...")
+            path = find_checkpoint(self.config.load_dir, self.config.load_step)
+        elif self.config.load_checkpoint is not None:
+            path = Path(self.config.load_checkpoint)
+        else:
+            CONSOLE.print("No Nerfstudio checkpoint to load, so training from scratch.")
+            return
+        loaded_state = load_checkpoint_file(path)
+        self._start_step = loaded_state["step"] + 1
+        try:
+            self.pipeline.load_pipeline(loaded_state["pipeline"], loaded_state["step"])
+        except CheckpointMismatchError as e:
+            raise e.for_file(path, trained_method(path)) from None
+        self.optimizers.load_optimizers(loaded_state["optimizers"])
+        if "schedulers" in loaded_state and self.config.load_scheduler:
+            self.optimizers.load_schedulers(loaded_state["schedulers"])
+        self.grad_scaler.load_state_dict(loaded_state["scalers"])
+        CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
+
+
+@dataclass
+class GSMSDRTrainerConfig(TrainerConfig):
+    """nerfstudio's TrainerConfig building a :class:`GSMSDRTrainer`; assigning ``load_dir`` checks the folder."""
+
+    _target: Type = field(default_factory=lambda: GSMSDRTrainer)
+
+    def __setattr__(self, name: str, value) -> None:
+        # eval_setup assigns the run's checkpoint folder here right before nerfstudio's loader reads the latest file
+        # (which fails without naming it). Not while __init__ runs (load_step is set after load_dir): the trainer
+        # checks --load-dir itself, after the config is printed.
+        if name == "load_dir" and value is not None and "load_step" in self.__dict__:
+            find_checkpoint(Path(value), self.load_step, nerfstudio_names=True)
+        super().__setattr__(name, value)
