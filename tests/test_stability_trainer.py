@@ -50,6 +50,7 @@ def trainer_factory(tiny_training_scene, tmp_path):
         config.pipeline.datamanager.cache_images_type = "float32"
         model = config.pipeline.model
         model.num_downscales, model.warmup_length, model.refine_every = 0, 2, 2
+        model.finite_check_every = 1  # stop at the bad step itself (test_step_syncs covers the deferred check)
         model.blur_field = BlurFieldConfig(size="lite", kernel_sizes=(3, 5, 9), warmup=0)
         trainer = config.setup(local_rank=0, world_size=1)
         trainer.setup()

@@ -15,7 +15,7 @@ level up) under it.
 from __future__ import annotations
 
 from collections import Counter, OrderedDict
-from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence, Union
+from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -24,6 +24,7 @@ from torch import Tensor, nn
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.grid_kernels import GridKernels, as_dense
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo
+from gsmsdr_ns.blur.maan import host_checked_view_ids
 from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, describe_profiles, effective_factor
 from gsmsdr_ns.timing_hooks import timed
@@ -137,6 +138,7 @@ class DegradationModel(nn.Module):
         self.hpko: Optional[HPKOScheduler] = None
         self.hpko_state: Optional[Dict[str, Any]] = None
         self.resolution_model: Optional[ResolutionLossModel] = None
+        self._view_id_tensors: Dict[Tuple[int, torch.device], Tensor] = {}
         num_views = len(self.profiles)
         if any(p.needs_blur_field for p in self.profiles):
             field_config = field_config.for_schedule(num_downscales)
@@ -220,6 +222,17 @@ class DegradationModel(nn.Module):
 
     # -- training -------------------------------------------------------------------------------------------
 
+    def view_ids(self, view_id: int, device: torch.device) -> Tensor:
+        """[1] tensor of training image ``view_id`` on ``device``, made (and range-checked on the host) once per
+        view and device, then reused: no host-to-device copy per step, and the modules need not read it back
+        (:func:`~gsmsdr_ns.blur.maan.host_checked_view_ids`)."""
+        key = (int(view_id), torch.device(device))
+        tensor = self._view_id_tensors.get(key)
+        if tensor is None:
+            tensor = host_checked_view_ids([key[0]], len(self.profiles), key[1])
+            self._view_id_tensors[key] = tensor
+        return tensor
+
     def lens_alone(self, view_id: int) -> bool:
         """Whether the thin lens alone models this image's blur (defocus only, a lens is built, and the field's
         config does not ask for the field on defocus)."""
@@ -273,7 +286,8 @@ class DegradationModel(nn.Module):
             ran, ``blur_mask`` [H, W, 1].
         """
         image = _bchw(rgb)
-        view_ids = torch.tensor([plan.view_id], device=image.device)
+        assert plan.view_id is not None
+        view_ids = self.view_ids(plan.view_id, image.device)
         outputs: Dict[str, Tensor] = {"rgb_sharp": rgb}
         if plan.blur_scale is not None:
             assert self.blur_field is not None
@@ -358,7 +372,7 @@ class DegradationModel(nn.Module):
         image = _bchw(rgb)
         low = image if d == 1 else F.interpolate(image, size=small, mode="area")
         view_id = nearest_view(self.train_camera_centres, camera_centre)
-        view_ids = torch.tensor([view_id], device=image.device)
+        view_ids = self.view_ids(view_id, image.device)
         lens = self.profiles[view_id].defocus and self.blur_field.thin_lens is not None
         lens_alone = self.lens_alone(view_id)
         field_depth = self.blur_field.uses_depth and not lens_alone

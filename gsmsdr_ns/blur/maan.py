@@ -15,7 +15,7 @@ Every module here works on [B, C, H, W] feature maps; all convolutions pad so th
 from __future__ import annotations
 
 import math
-from typing import List, Optional
+from typing import List, Optional, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -35,6 +35,8 @@ __all__ = [
     "positional_encoding_2d",
     "normalize_depth",
     "check_bchw",
+    "check_view_ids",
+    "host_checked_view_ids",
 ]
 
 
@@ -276,10 +278,36 @@ class BAGSFeatures(nn.Module):
 # ------------------------------------------------------------------------------------------------ MCF and MCA
 
 
+_HOST_CHECKED_BOUND = "_gsmsdr_view_ids_below"  # attribute of a tensor made by host_checked_view_ids
+
+
+def host_checked_view_ids(view_ids: Sequence[int], num_views: int, device: torch.device) -> Tensor:
+    """[B] int64 tensor of ``view_ids`` on ``device``, checked to lie in [0, num_views) here, on the host.
+
+    :func:`check_view_ids` trusts such a tensor (for any bound >= ``num_views``) instead of reading its values back
+    from the device: training steps build their view ids once with this and reuse them, so checking them costs no
+    host-device synchronisation. Do not modify the returned tensor in place.
+    """
+    ids = [int(i) for i in view_ids]
+    bad = [i for i in ids if not 0 <= i < num_views]
+    if bad:
+        raise ValueError(f"view_ids must lie in [0, {num_views}), got {ids}")
+    tensor = torch.tensor(ids, dtype=torch.long, device=device)
+    setattr(tensor, _HOST_CHECKED_BOUND, int(num_views))
+    return tensor
+
+
 def check_view_ids(view_ids: Tensor, batch: int, num_views: int) -> None:
-    """Raise ValueError unless ``view_ids`` is [batch] with every id in [0, num_views)."""
+    """Raise ValueError unless ``view_ids`` is [batch] with every id in [0, num_views).
+
+    The values are read back (a host-device synchronisation on a GPU) unless ``view_ids`` came from
+    :func:`host_checked_view_ids` with a bound of at most ``num_views``.
+    """
     if view_ids.shape != (batch,):
         raise ValueError(f"view_ids must have shape [{batch}], got {list(view_ids.shape)}")
+    checked_below = getattr(view_ids, _HOST_CHECKED_BOUND, None)
+    if checked_below is not None and checked_below <= num_views:
+        return
     if view_ids.numel() and (int(view_ids.min()) < 0 or int(view_ids.max()) >= num_views):
         raise ValueError(f"view_ids must lie in [0, {num_views}), got {view_ids.tolist()}")
 

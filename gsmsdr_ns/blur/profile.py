@@ -258,12 +258,17 @@ class ResolutionLossModel(nn.Module):
             raise ValueError(f"need one factor per image ({B}), got {len(factors)}")
         if self.num_views is not None and (view_ids is None or view_ids.shape != (B,)):
             raise ValueError(f"per-view residuals need view_ids of shape [{B}]")
-        rows = []
-        for f in sorted(set(factors)):  # one resize per distinct factor
-            idx = [i for i, g in enumerate(factors) if g == f]
-            rows.append((idx, resolution_loss(render[idx], f, self.upsample)))
-        order = [i for idx, _ in rows for i in idx]
-        low = torch.cat([x for _, x in rows], dim=0)[torch.argsort(torch.tensor(order, device=render.device))]
+        # one resize per distinct factor; images are gathered and put back by slicing (no index tensors: nothing
+        # is copied between host and device per call)
+        by_factor = {}
+        for f in sorted(set(factors)):
+            group = [render[i : i + 1] for i, g in enumerate(factors) if g == f]
+            by_factor[f] = resolution_loss(torch.cat(group) if len(group) > 1 else group[0], f, self.upsample)
+        if len(by_factor) == 1:
+            low = by_factor[factors[0]]
+        else:
+            rank = [factors[:i].count(f) for i, f in enumerate(factors)]  # position of image i in its group
+            low = torch.cat([by_factor[f][r : r + 1] for f, r in zip(factors, rank)])
         k = self.kernel_size
         kern = self.kernels(view_ids, B).to(render.dtype)  # [B, k*k]
         padded = F.pad(low.reshape(1, B * C, H, W), [k // 2] * 4, mode="replicate")

@@ -8,7 +8,8 @@ Differences from ``SplatfactoModel``, each kept as a small override that extends
 * works offline: LPIPS is built only when torchvision's AlexNet backbone is already in the torch hub cache,
   otherwise the metric is left out (one warning) instead of crashing on a download;
 * a point cloud that is empty or too small falls back to random initialisation with a warning;
-* a non-finite loss stops training with :class:`NonFiniteLossError` naming the step;
+* a non-finite loss or Gaussian parameter stops training with :class:`NonFiniteLossError` naming the step (found
+  on the device every step, read every ``finite_check_every`` steps: a step does not wait for the device);
 * checkpoints resize the existing Gaussian parameters in place when loaded, so optimizers built before loading
   (``ns-train --load-dir``) keep updating the model's parameters;
 * GS-MSDR's degradation models live in ``degradation`` (:class:`~gsmsdr_ns.blur.degradation_model.DegradationModel`),
@@ -54,6 +55,7 @@ from gsmsdr_ns.blur.profile import (
     training_profiles,
 )
 from gsmsdr_ns.plugin.checkpoint import check_state_dict_shapes
+from gsmsdr_ns.plugin.finite_check import NonFiniteLossError, NonFiniteRecorder
 from gsmsdr_ns.plugin.lpips import (
     LPIPSUnavailable,
     lpips_backbone_cache_path,
@@ -69,10 +71,6 @@ MIN_SEED_POINTS = 4  # splatfacto sizes each Gaussian from its 3 nearest neighbo
 
 class GSMSDRWarning(UserWarning):
     """Degraded but working set-up (no LPIPS, random initialisation)."""
-
-
-class NonFiniteLossError(FloatingPointError):
-    """A training loss became NaN or infinite."""
 
 
 @dataclass
@@ -94,6 +92,11 @@ class GSMSDRModelConfig(SplatfactoModelConfig):
     viewer_blur_max_side: int = 128
     """The viewer blur outputs are computed on the render shrunk by a power of two until its longer side is at most
     this (0: full resolution), then enlarged back, so their cost does not grow with the viewer's resolution."""
+    finite_check_every: Optional[int] = None
+    """Steps between reads of the non-finite check: each step's loss terms and Gaussian parameters are checked on the
+    device without waiting for it, and every N steps (and before every checkpoint) training stops with
+    NonFiniteLossError naming the first bad step. 1: stop at the bad step itself, before its update; 0: no check;
+    None: 1 on the CPU (reading costs no wait there), 10 on a GPU."""
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -111,19 +114,24 @@ def viewmats_from_camera_to_worlds(camera_to_worlds: Tensor) -> Tensor:
     """
     if camera_to_worlds.ndim != 3 or camera_to_worlds.shape[-2] not in (3, 4) or camera_to_worlds.shape[-1] != 4:
         raise ValueError(f"expected camera_to_worlds of shape [C, 3, 4], got {tuple(camera_to_worlds.shape)}")
-    flip_yz = camera_to_worlds.new_tensor([1.0, -1.0, -1.0])
+    flip_yz = camera_to_worlds.new_full((3,), -1.0)  # constants filled on the device: no host copy per call
+    flip_yz[0] = 1.0
     rotation = camera_to_worlds[:, :3, :3] * flip_yz  # negate the y and z camera axes
     translation = camera_to_worlds[:, :3, 3:4]
     rotation_inv = rotation.transpose(1, 2)
     translation_inv = -rotation_inv @ translation
-    bottom = camera_to_worlds.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(camera_to_worlds.shape[0], 1, 4)
+    bottom = camera_to_worlds.new_zeros(camera_to_worlds.shape[0], 1, 4)
+    bottom[..., 3] = 1.0
     return torch.cat([torch.cat([rotation_inv, translation_inv], dim=2), bottom], dim=1)
 
 
-def intrinsics_at_scale(camera: Cameras, downscale: int, device: torch.device) -> Tuple[Tensor, int, int]:
+def intrinsics_at_scale(
+    camera: Cameras, downscale: int, device: torch.device, full_size: Optional[Tuple[int, int]] = None
+) -> Tuple[Tensor, int, int]:
     """Pinhole intrinsics and image size of a single camera rendered ``downscale`` times smaller.
 
     Matches ``Cameras.rescale_output_resolution(1 / downscale)`` (floor rounding) without mutating the camera.
+    ``full_size``: the camera's (width, height) if known; else it is read from the camera (a sync on a GPU).
 
     Returns:
         K: [1, 3, 3] on ``device``; width; height.
@@ -131,9 +139,9 @@ def intrinsics_at_scale(camera: Cameras, downscale: int, device: torch.device) -
     K = camera.get_intrinsics_matrices().reshape(-1, 3, 3).to(device)
     if downscale > 1:
         K = torch.cat([K[:, :2] / downscale, K[:, 2:]], dim=1)
-    width = int(camera.width.reshape(-1)[0].item()) // downscale
-    height = int(camera.height.reshape(-1)[0].item()) // downscale
-    return K, width, height
+    if full_size is None:
+        full_size = int(camera.width.reshape(-1)[0].item()), int(camera.height.reshape(-1)[0].item())
+    return K, full_size[0] // downscale, full_size[1] // downscale
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -160,6 +168,8 @@ class GSMSDRModel(SplatfactoModel):
         if not self.has_lpips:
             warn_lpips_disabled(lpips_path, GSMSDRWarning)
         self._populate_degradation_modules()
+        self._nonfinite = NonFiniteRecorder()
+        self._train_image_sizes: Dict[int, Tuple[int, int]] = {}  # cam_idx -> full (width, height)
 
     def _populate_degradation_modules(self) -> None:
         """``degradation``: the :class:`DegradationModel` of the training images (one profile each, from the
@@ -277,7 +287,7 @@ class GSMSDRModel(SplatfactoModel):
             raise ValueError(f"gsmsdr renders one camera at a time, got {camera.shape[0]}")
 
         downscale = self._get_downscale_factor()
-        K, width, height = intrinsics_at_scale(camera, downscale, self.device)
+        K, width, height = intrinsics_at_scale(camera, downscale, self.device, self._train_image_size(camera))
         gaussians = self._gaussians_in_crop()
         if gaussians is None:
             full_width, full_height = int(camera.width.item()), int(camera.height.item())
@@ -314,6 +324,18 @@ class GSMSDRModel(SplatfactoModel):
             centre = camera.camera_to_worlds.reshape(-1, 3, 4)[0, :3, 3]
             outputs.update(self.degradation.preview(outputs["rgb"], depth, centre))
         return outputs
+
+    def _train_image_size(self, camera: Cameras) -> Optional[Tuple[int, int]]:
+        """Full (width, height) of a training camera (``cam_idx``, training mode), read from the camera once per
+        image (training images keep their size; reading it every step would wait for the device); else None."""
+        if not self.training or not camera.metadata or "cam_idx" not in camera.metadata:
+            return None
+        cam_idx = int(camera.metadata["cam_idx"])
+        size = self._train_image_sizes.get(cam_idx)
+        if size is None:
+            size = int(camera.width.reshape(-1)[0].item()), int(camera.height.reshape(-1)[0].item())
+            self._train_image_sizes[cam_idx] = size
+        return size
 
     def _degradation_plan(self, camera: Cameras, downscale: int) -> DegradationPlan:
         """What to simulate for this camera (:meth:`DegradationModel.plan`): nothing at evaluation or for cameras
@@ -432,22 +454,32 @@ class GSMSDRModel(SplatfactoModel):
         return metrics_dict
 
     def _check_finite(self, loss_dict: Dict[str, Tensor]) -> None:
-        """Raise :class:`NonFiniteLossError` if a loss term or a Gaussian parameter is NaN or infinite.
+        """Raise :class:`NonFiniteLossError` if a loss term or a Gaussian parameter has been NaN or infinite.
 
         Parameters are checked too: a NaN position, scale or rotation only culls its Gaussian, so the loss would
-        stay finite while the scene silently decays.
+        stay finite while the scene silently decays. Checked on the device every step, read (a sync) on multiples
+        of ``finite_check_every``; the error names the first bad step, its loss terms and its bad parameters.
         """
-        values = torch.stack([torch.as_tensor(v).detach().float().sum().cpu() for v in loss_dict.values()])
-        params_ok = torch.stack([torch.isfinite(p.detach()).all() for p in self.gauss_params.values()])
-        if bool(torch.isfinite(values).all()) and bool(params_ok.all()):
-            return
-        terms = ", ".join(f"{name}={value:.4g}" for name, value in zip(loss_dict, values.tolist()))
-        bad = [name for name, ok in zip(self.gauss_params.keys(), params_ok.tolist()) if not ok]
-        raise NonFiniteLossError(
-            f"gsmsdr: non-finite training loss or parameters at step {self.step} ({terms}); non-finite Gaussian "
-            f"parameters: {', '.join(bad) or 'none'}; {self.num_points} Gaussians. Lower the learning rates in "
-            "--optimizers, check the input images and poses, or resume from an earlier checkpoint."
-        )
+        every = self.finite_check_interval
+        if every > 0:
+            self._nonfinite.observe(self.step, loss_dict, self.gauss_params)
+            if self.step % every == 0:
+                self._nonfinite.raise_if_seen(self.step, every, self.num_points)
+
+    @property
+    def finite_check_interval(self) -> int:
+        """``finite_check_every`` resolved for the parameters' device (see the config)."""
+        every = self.config.finite_check_every
+        if every is None:
+            return 1 if self.gauss_params["means"].device.type == "cpu" else 10
+        return int(every)
+
+    def raise_if_nonfinite(self) -> None:
+        """Raise NonFiniteLossError if any step since the last read was not finite (one device read); the trainer
+        calls it before writing a checkpoint, so no checkpoint holds a NaN the deferred check has not reported."""
+        every = self.finite_check_interval
+        if every > 0:
+            self._nonfinite.raise_if_seen(self.step, every, self.num_points)
 
     def get_image_metrics_and_images(
         self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]

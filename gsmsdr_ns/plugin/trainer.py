@@ -51,10 +51,15 @@ class GSMSDRTrainer(Trainer):
 
     @check_main_thread
     def save_checkpoint(self, step: int) -> None:
-        """Save the pipeline, optimizers, schedulers and grad scaler as nerfstudio does, atomically."""
+        """Save the pipeline, optimizers, schedulers and grad scaler as nerfstudio does, atomically (after the model's
+        non-finite check, which raises instead of saving a NaN)."""
+        pipeline = self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
+        # a NaN the model's deferred check has not read yet stops training here instead of reaching the checkpoint
+        check_finite = getattr(pipeline.model, "raise_if_nonfinite", None)
+        if check_finite is not None:
+            check_finite()
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
         path = checkpoint_file(self.checkpoint_dir, step)
-        pipeline = self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
         payload = {
             "step": step,
             "pipeline": pipeline.state_dict(),  # type: ignore[union-attr]
