@@ -14,6 +14,7 @@ kernels are for inspection (the viewer's blur size); training applies the lens w
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import torch
 import torch.nn.functional as F
@@ -230,13 +231,24 @@ class ThinLensDefocus(nn.Module):
         radius = self._radius(inverse_depth, view_ids.long(), pixel_scale).clamp(max=max_kernel_size // 2)
         return radius, inverse_depth, lens_window(radius, max_kernel_size, self.softness)
 
-    def forward(self, depth: Tensor, view_ids: Tensor, max_kernel_size: int, pixel_scale: float = 1.0) -> Tensor:
-        """[B, K*K, H, W] defocus kernels (sum to 1) for rendered ``depth`` [B, 1, H, W] of ``view_ids`` [B].
+    def forward(
+        self,
+        depth: Tensor,
+        view_ids: Tensor,
+        max_kernel_size: int,
+        pixel_scale: float = 1.0,
+        image: Optional[Tensor] = None,
+        linear_light: bool = False,
+    ) -> Tensor:
+        """The lens of ``view_ids`` [B] for rendered ``depth`` [B, 1, H, W]: its [B, K*K, H, W] defocus kernels (sum
+        to 1), or with ``image`` [B, C, H, W] the image through it (:meth:`blur`).
 
         K is :func:`lens_window` of the radii (the smallest odd window holding the largest disk on the CPU), at
         most ``max_kernel_size`` (radii beyond it are truncated).
         """
         radius, inverse_depth, K = self._lens(depth, view_ids, max_kernel_size, pixel_scale)
+        if image is not None:
+            return self._blur(image, radius, inverse_depth, K, linear_light)
         if not self.occlusion:
             return soft_disk_kernels(radius, K, self.softness)
         return occluding_disk_kernels(radius, inverse_depth, K, self.softness)
@@ -253,8 +265,11 @@ class ThinLensDefocus(nn.Module):
         """``image`` [B, C, H, W] through the lens: ``BlurField.blur(image, self(depth, ...), linear_light)``
         computed by the fused ops (:func:`apply_occluding_defocus`, :func:`apply_soft_disk_defocus`), which never
         hold the [B, K*K, H, W] kernels. Returns [B, C, H, W] in the wider of the image's and the radius's dtype.
-        """
-        radius, inverse_depth, K = self._lens(depth, view_ids, max_kernel_size, pixel_scale)
+        Same as ``self(depth, view_ids, max_kernel_size, pixel_scale, image, linear_light)`` (a module call: hooks
+        see it)."""
+        return self(depth, view_ids, max_kernel_size, pixel_scale, image, linear_light)
+
+    def _blur(self, image: Tensor, radius: Tensor, inverse_depth: Tensor, K: int, linear_light: bool) -> Tensor:
         dtype = torch.promote_types(image.dtype, radius.dtype)
         source = rgb_to_linear_rgb(image) if linear_light else image
         source, radius = source.to(dtype), radius.to(dtype)

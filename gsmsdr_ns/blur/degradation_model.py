@@ -326,9 +326,9 @@ class DegradationModel(nn.Module):
             if keep_lens_kernels:
                 lens_kernels = timed("blur_field", thin_lens, depth, view_ids, lens_window, lens_pixel_scale)
                 image = timed("kernels", BlurField.blur, image, lens_kernels, linear_light)
-            else:
-                args = (image, depth, view_ids, lens_window, lens_pixel_scale, linear_light)
-                image = timed("kernels", thin_lens.blur, *args)
+            else:  # the image through the lens (ThinLensDefocus.blur)
+                args = (depth, view_ids, lens_window, lens_pixel_scale, image, linear_light)
+                image = timed("kernels", thin_lens, *args)
         kernels = mask = None
         if field:
             kernels, mask = timed("blur_field", self.blur_field, image, depth if field_depth else None, view_ids, scale)
