@@ -180,7 +180,10 @@ void backward_rows(const S *grad_out, const S *img, const S *rad, const S *invd,
         S *gi_b = grad_img == nullptr ? nullptr : grad_img + b * s.C * s.HW;
         S *gr_row = grad_rad == nullptr ? nullptr : grad_rad + b * s.HW + ys * s.W;
         if (gi_b != nullptr)
-            for (int64_t c = 0; c < s.C; ++c) std::fill(gi_b + c * s.HW + ys * s.W, gi_b + c * s.HW + (ys + 1) * s.W, S(0));
+            for (int64_t c = 0; c < s.C; ++c) {
+                S *gi_row = gi_b + c * s.HW + ys * s.W;
+                std::fill(gi_row, gi_row + s.W, S(0));
+            }
         if (gr_row != nullptr) std::fill(gr_row, gr_row + s.W, S(0));
         auto fill_beta = [&](int64_t y) {
             for (int64_t x = 0; x < s.W; ++x) {
