@@ -10,7 +10,15 @@ import math
 import pytest
 import torch
 
-from gsmsdr_ns.blur.defocus import ThinLensDefocus, occluding_disk_kernels, soft_disk_kernels, thin_lens_radius
+from gsmsdr_ns.blur.defocus import (
+    ThinLensDefocus,
+    lens_window,
+    occluding_disk_kernels,
+    soft_disk_kernels,
+    thin_lens_radius,
+)
+from gsmsdr_ns.blur.degradation_model import DegradationModel
+from gsmsdr_ns.blur.profile import DegradationProfile
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.kernels import apply_pixel_kernels
 from gsmsdr_ns.degrade.kernels import defocus_radius
@@ -213,3 +221,66 @@ def test_a_non_finite_depth_gives_nan_kernels_and_leaves_the_focus_alone():
     kernels = lens(depth, torch.tensor([0]), 9)
     assert kernels.shape == (1, 81, 8, 8) and torch.isnan(kernels).all()
     assert not bool(lens.focus_initialised[0]) and float(lens.inverse_focus.detach()[0]) == 0.0
+
+
+@pytest.mark.parametrize("occlusion", [True, False])
+def test_the_fused_lens_blur_is_the_kernels_applied(occlusion):
+    """``ThinLensDefocus.blur`` (the fused op training uses) = ``BlurField.blur`` of the lens's kernels, values and
+    the gradients of the render and of the lens's parameters."""
+    torch.manual_seed(0)
+    render = torch.rand(1, 3, 32, 40, requires_grad=True)
+    target = torch.rand(1, 3, 32, 40)
+    results = []
+    for fused in (True, False):
+        lens = ThinLensDefocus(num_views=2, initial_aperture=3.0, occlusion=occlusion)
+        ids = torch.tensor([1])
+        if fused:
+            out = lens.blur(render, _depth_ramp(), ids, 11, pixel_scale=0.8, linear_light=True)
+        else:
+            out = BlurField.blur(render, lens(_depth_ramp(), ids, 11, pixel_scale=0.8), linear_light=True)
+        (out - target).square().mean().backward()
+        results.append((out.detach(), render.grad.clone(), lens.log_aperture.grad, lens.inverse_focus.grad))
+        render.grad = None
+    for a, b in zip(*results):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
+
+
+def test_lens_window_reads_the_largest_radius_on_the_cpu_only():
+    radius = torch.full((1, 1, 4, 4), 0.3)
+    assert lens_window(radius, 17, 0.25) == 5  # ceil(0.3 + 1.5) = 2
+    assert lens_window(torch.full((1, 1, 4, 4), float("nan")), 17, 0.25) == 17
+    # elsewhere (CUDA) reading it would wait for the device: the full window, the tensor's values never read
+    assert lens_window(torch.empty(1, 1, 4, 4, device="meta"), 17, 0.25) == 17
+
+
+def test_focus_initialisation_on_a_device_matches_the_cpu_rule_without_reading_a_value():
+    """``_initialise_focus_on_device`` (the CUDA path: no host round trip) sets the same focus as the CPU path: new
+    views get their median, seen views and non-finite renders are left alone."""
+    depth = torch.stack([_depth_ramp()[0], 2.0 * _depth_ramp()[0], torch.full_like(_depth_ramp()[0], float("nan"))])
+    inverse_depth = 1.0 / depth
+    ids = torch.tensor([0, 2, 3])
+    lenses = [ThinLensDefocus(num_views=4) for _ in range(2)]
+    for lens in lenses:
+        with torch.no_grad():
+            lens.inverse_focus[2] = 0.7  # view 2 seen before
+            lens.focus_initialised[2] = True
+    lenses[0]._initialise_focus(ids, inverse_depth)
+    lenses[1]._initialise_focus_on_device(ids, inverse_depth)
+    assert lenses[1].focus_initialised.tolist() == [True, False, True, False]
+    for a, b in zip(lenses[0].state_dict().values(), lenses[1].state_dict().values()):
+        assert torch.equal(a, b)
+    assert abs(float(lenses[1].inverse_focus[2]) - 0.7) < 1e-7
+
+
+def test_the_degradation_model_blurs_through_the_fused_lens_as_through_its_kernels():
+    model = DegradationModel([DegradationProfile(defocus=True)], BlurFieldConfig(mode="view", kernel_sizes=(5, 9)))
+    lens = model.blur_field.thin_lens
+    with torch.no_grad():
+        lens.log_aperture.fill_(math.log(4.0))
+    render, depth, ids = torch.rand(1, 3, 20, 24), _depth_ramp(20, 24), torch.tensor([0])
+    fused = model._lens_then_field(render, depth, ids, 1, 9, 1.0, lens=True, field=False, field_depth=False)
+    kept = model._lens_then_field(render, depth, ids, 1, 9, 1.0, lens=True, field=False, field_depth=False,
+                                  keep_lens_kernels=True)  # fmt: skip
+    assert fused.lens_kernels is None and kept.lens_kernels is not None and kept.lens_kernels.shape[1] == 81
+    torch.testing.assert_close(fused.image, kept.image, rtol=1e-5, atol=1e-7)
+    assert not torch.allclose(fused.image, render, atol=1e-3)  # the lens did blur

@@ -5,7 +5,7 @@ from __future__ import annotations
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple
+from typing import Annotated, List, Optional, Sequence, Tuple
 
 import tyro
 
@@ -86,6 +86,45 @@ class KernelsBench:
 
 
 @dataclass
+class MemoryBench:
+    """Extra peak memory and time of the thin lens + blur field forward and backward at K = 17 on the CPU, each size
+    and lens in a fresh process under an address-space limit; writes results.md / results.csv into --out (merged
+    with earlier rows). See gsmsdr_ns/bench/memory.py."""
+
+    sizes: Tuple[str, ...] = ("600x400", "1297x840")
+    """Image sizes, WIDTHxHEIGHT."""
+    lens: Tuple[str, ...] = ("fused", "unfused")
+    """Thin lens implementations: fused (ThinLensDefocus.blur, what training runs) and/or unfused (its kernels)."""
+    set: Annotated[Tuple[str, ...], tyro.conf.UseAppendAction] = ()
+    """BlurFieldConfig override key=value, repeatable (--set size=lite --set mode=view); default: today's field."""
+    field: bool = True
+    """Run the blur field after the lens (--no-field: the lens alone)."""
+    kernel_size: int = 17
+    """Lens window and field kernel size K (one of the field's kernel sizes)."""
+    limit_gb: float = 10.0
+    """Address-space limit of each measuring process (GB, 2^30 bytes); a run that needs more is reported "> limit"."""
+    threads: int = 0
+    """torch intra-op threads in the measuring processes (0: torch's default)."""
+    out: Path = Path("bench-results") / "memory"
+    """Folder of results.md and results.csv."""
+
+    def main(self) -> None:
+        import shlex
+
+        from gsmsdr_ns.bench.memory import format_table, run_memory_benchmark, table_header, write_results
+
+        try:
+            rows = run_memory_benchmark(self.sizes, self.lens, self.set, self.kernel_size, self.limit_gb, self.field,
+                                        self.threads)  # fmt: skip
+        except ValueError as e:
+            raise SystemExit(f"gsmsdr-bench memory: {e}") from None
+        command = "gsmsdr-bench " + " ".join(shlex.quote(a) for a in _invocation_args())
+        header = table_header(self.kernel_size, self.limit_gb, self.threads, command)
+        print(format_table(rows, header))
+        print("wrote " + ", ".join(str(p) for p in write_results(self.out, rows, header)))
+
+
+@dataclass
 class SuiteBench:
     """Run a benchmark suite (configs/bench/*.yaml: scenes x methods x step budgets x seeds) through nerfstudio's
     trainer; writes results.csv, results.md and PNG plots into --out. Finished runs are kept in <out>/runs/ and
@@ -149,6 +188,7 @@ SUBCOMMANDS = {
     "raster": RasterBench,
     "degrade": DegradeBench,
     "kernels": KernelsBench,
+    "memory": MemoryBench,
     "suite": SuiteBench,
 }
 

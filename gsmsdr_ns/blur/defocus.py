@@ -6,20 +6,33 @@ every pixel therefore follows from the rendered depth and two numbers per photo:
 unit of inverse depth) and the focus (an inverse depth). Learning those two numbers from every pixel of the photo
 is far better posed than learning a free kernel per pixel, which is what the feature network would have to do.
 
-Pure functions first (shapes in the docstrings), then :class:`ThinLensDefocus`, the learnable per-view lens.
+Pure functions first (shapes in the docstrings), then :class:`ThinLensDefocus`, the learnable per-view lens. The
+kernels are for inspection (the viewer's blur size); training applies the lens with the fused ops of
+:mod:`gsmsdr_ns.blur.defocus_op`, which never hold the K*K weights (:meth:`ThinLensDefocus.blur`).
 """
 
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import torch
 import torch.nn.functional as F
+from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 from torch import Tensor, nn
 
+from .defocus_op import apply_occluding_defocus, apply_soft_disk_defocus
 from .maan import check_bchw, check_view_ids
 
-__all__ = ["soft_disk_kernels", "occluding_disk_kernels", "thin_lens_radius", "ThinLensDefocus"]
+__all__ = [
+    "soft_disk_kernels",
+    "occluding_disk_kernels",
+    "thin_lens_radius",
+    "lens_window",
+    "ThinLensDefocus",
+    "apply_occluding_defocus",
+    "apply_soft_disk_defocus",
+]
 
 
 def _check_window(kernel_size: int, softness: float) -> None:
@@ -114,8 +127,25 @@ def thin_lens_radius(inverse_depth: Tensor, aperture: Tensor, inverse_focus: Ten
     return aperture[:, None, None, None] * (inverse_depth - inverse_focus[:, None, None, None]).abs()
 
 
+def lens_window(radius: Tensor, max_kernel_size: int, softness: float) -> int:
+    """The odd window holding the largest disk of ``radius`` [B, 1, H, W] with its soft edge, at most
+    ``max_kernel_size``: a lens that barely blurs costs a 5x5 window, not the scale's full one.
+
+    Reading the largest radius is a host-device synchronisation, free on the CPU only: on any other device the
+    window is ``max_kernel_size`` (the extra taps of a smaller disk weigh less than e^-24). A NaN radius (a NaN
+    depth) also gets ``max_kernel_size``: it flows on into the loss, where training stops naming the step.
+    """
+    half = max_kernel_size // 2
+    if radius.device.type == "cpu":
+        largest = float(radius.detach().max())
+        if not math.isnan(largest):
+            half = min(half, math.ceil(largest + 6.0 * softness))
+    return 2 * half + 1
+
+
 class ThinLensDefocus(nn.Module):
-    """A learnable thin lens per training view: ``forward(depth, view_ids, kernel_size, pixel_scale)`` -> kernels.
+    """A learnable thin lens per training view: ``blur(image, depth, view_ids, kernel_size, pixel_scale)`` -> the
+    image through the lens; ``forward(depth, view_ids, kernel_size, pixel_scale)`` -> its kernels.
 
     Parameters: ``log_aperture`` (one, shared: a capture is usually shot with one lens setting, so every photo's
     gradient trains it), ``view_log_aperture`` [V] (each photo's deviation from it, starts at 0) and
@@ -166,8 +196,11 @@ class ThinLensDefocus(nn.Module):
 
     def _radius(self, inverse_depth: Tensor, ids: Tensor, pixel_scale: float) -> Tensor:
         # a viewer preview (eval mode) must not pick a training view's focus; seen views need no median
-        if self.training and not bool(self.focus_initialised[ids].all()):
-            self._initialise_focus(ids, inverse_depth)
+        if self.training:
+            if inverse_depth.device.type != "cpu":  # reading focus_initialised would wait for the device
+                self._initialise_focus_on_device(ids, inverse_depth)
+            elif not bool(self.focus_initialised[ids].all()):
+                self._initialise_focus(ids, inverse_depth)
         radius = thin_lens_radius(inverse_depth, self.aperture(ids), self.inverse_focus[ids])
         return radius * float(pixel_scale)
 
@@ -180,21 +213,68 @@ class ThinLensDefocus(nn.Module):
             self.inverse_focus[ids[new]] = medians[new].to(self.inverse_focus.dtype)
             self.focus_initialised[ids[new]] = True
 
-    def forward(self, depth: Tensor, view_ids: Tensor, max_kernel_size: int, pixel_scale: float = 1.0) -> Tensor:
-        """[B, K*K, H, W] defocus kernels (sum to 1) for rendered ``depth`` [B, 1, H, W] of ``view_ids`` [B].
+    @torch.no_grad()
+    def _initialise_focus_on_device(self, ids: Tensor, inverse_depth: Tensor) -> None:
+        """:meth:`_initialise_focus` without a host round trip: the medians are computed every time and written
+        only where a view is new (``torch.where`` on the parameter's data)."""
+        medians = inverse_depth.flatten(1).nanmedian(dim=1).values.to(self.inverse_focus.dtype)
+        seen = self.focus_initialised[ids]
+        new = ~seen & torch.isfinite(medians)
+        self.inverse_focus[ids] = torch.where(new, medians, self.inverse_focus[ids])
+        self.focus_initialised[ids] = seen | new
 
-        K is the smallest odd window that holds the largest disk with its soft edge, at most ``max_kernel_size``
-        (radii beyond it are truncated): a lens that barely blurs costs a 5x5 kernel, not the scale's full one.
-        """
+    def _lens(self, depth: Tensor, view_ids: Tensor, max_kernel_size: int, pixel_scale: float):
+        """(radius [B, 1, H, W] clamped to the window, inverse depth [B, 1, H, W], window K)."""
         if max_kernel_size < 1 or max_kernel_size % 2 == 0:
             raise ValueError(f"max_kernel_size must be a positive odd integer, got {max_kernel_size}")
         inverse_depth = self._inverse_depth(depth, view_ids)
         radius = self._radius(inverse_depth, view_ids.long(), pixel_scale).clamp(max=max_kernel_size // 2)
-        largest = float(radius.detach().max())
-        # a NaN radius (NaN depth) flows on into the loss, where training stops naming the step
-        half = max_kernel_size // 2
-        if not math.isnan(largest):
-            half = min(half, math.ceil(largest + 6.0 * self.softness))
+        return radius, inverse_depth, lens_window(radius, max_kernel_size, self.softness)
+
+    def forward(
+        self,
+        depth: Tensor,
+        view_ids: Tensor,
+        max_kernel_size: int,
+        pixel_scale: float = 1.0,
+        image: Optional[Tensor] = None,
+        linear_light: bool = False,
+    ) -> Tensor:
+        """The lens of ``view_ids`` [B] for rendered ``depth`` [B, 1, H, W]: its [B, K*K, H, W] defocus kernels (sum
+        to 1), or with ``image`` [B, C, H, W] the image through it (:meth:`blur`).
+
+        K is :func:`lens_window` of the radii (the smallest odd window holding the largest disk on the CPU), at
+        most ``max_kernel_size`` (radii beyond it are truncated).
+        """
+        radius, inverse_depth, K = self._lens(depth, view_ids, max_kernel_size, pixel_scale)
+        if image is not None:
+            return self._blur(image, radius, inverse_depth, K, linear_light)
         if not self.occlusion:
-            return soft_disk_kernels(radius, 2 * half + 1, self.softness)
-        return occluding_disk_kernels(radius, inverse_depth, 2 * half + 1, self.softness)
+            return soft_disk_kernels(radius, K, self.softness)
+        return occluding_disk_kernels(radius, inverse_depth, K, self.softness)
+
+    def blur(
+        self,
+        image: Tensor,
+        depth: Tensor,
+        view_ids: Tensor,
+        max_kernel_size: int,
+        pixel_scale: float = 1.0,
+        linear_light: bool = False,
+    ) -> Tensor:
+        """``image`` [B, C, H, W] through the lens: ``BlurField.blur(image, self(depth, ...), linear_light)``
+        computed by the fused ops (:func:`apply_occluding_defocus`, :func:`apply_soft_disk_defocus`), which never
+        hold the [B, K*K, H, W] kernels. Returns [B, C, H, W] in the wider of the image's and the radius's dtype.
+        Same as ``self(depth, view_ids, max_kernel_size, pixel_scale, image, linear_light)`` (a module call: hooks
+        see it)."""
+        return self(depth, view_ids, max_kernel_size, pixel_scale, image, linear_light)
+
+    def _blur(self, image: Tensor, radius: Tensor, inverse_depth: Tensor, K: int, linear_light: bool) -> Tensor:
+        dtype = torch.promote_types(image.dtype, radius.dtype)
+        source = rgb_to_linear_rgb(image) if linear_light else image
+        source, radius = source.to(dtype), radius.to(dtype)
+        if self.occlusion:
+            blurred = apply_occluding_defocus(source, radius, inverse_depth.to(dtype), K, self.softness)
+        else:
+            blurred = apply_soft_disk_defocus(source, radius, K, self.softness)
+        return linear_rgb_to_rgb(blurred) if linear_light else blurred

@@ -325,18 +325,25 @@ class DegradationModel(nn.Module):
         lens: bool,
         field: bool,
         field_depth: bool,
+        keep_lens_kernels: bool = False,
     ) -> LensThenField:
         """The blur of a training view as a camera makes it: its thin lens first (``lens``: disk kernels from
         ``depth`` in a ``lens_window`` window, aperture scaled by ``lens_pixel_scale`` from full-resolution pixels),
         then the field's kernels and mask on the lens's result (``field``; it reads ``depth`` when
-        ``field_depth``). image [1, 3, H, W], depth [1, 1, H, W] or None, view_ids [1]."""
+        ``field_depth``). The lens's kernels are returned with ``keep_lens_kernels`` only: the fused lens never
+        holds them. image [1, 3, H, W], depth [1, 1, H, W] or None, view_ids [1]."""
         assert self.blur_field is not None
         lens_kernels = None
         if lens:
             assert self.blur_field.thin_lens is not None and depth is not None
             thin_lens = self.blur_field.thin_lens
-            lens_kernels = timed("blur_field", thin_lens, depth, view_ids, lens_window, lens_pixel_scale)
-            image = timed("kernels", BlurField.blur, image, lens_kernels, self.blur_field.config.linear_light)
+            linear_light = self.blur_field.config.linear_light
+            if keep_lens_kernels:
+                lens_kernels = timed("blur_field", thin_lens, depth, view_ids, lens_window, lens_pixel_scale)
+                image = timed("kernels", BlurField.blur, image, lens_kernels, linear_light)
+            else:  # the image through the lens (ThinLensDefocus.blur)
+                args = (depth, view_ids, lens_window, lens_pixel_scale, image, linear_light)
+                image = timed("kernels", thin_lens, *args)
         kernels = mask = None
         if field:
             field_depth_in = depth if field_depth else None
@@ -388,7 +395,7 @@ class DegradationModel(nn.Module):
         window = (info.kernel_size * info.downsample // d) | 1  # the scale's window at the preview's grid, odd
         stages = self._lens_then_field(
             low, low_depth, view_ids, info.scale, window, 1.0 / d, lens=lens, field=not lens_alone,
-            field_depth=field_depth,
+            field_depth=field_depth, keep_lens_kernels=True,
         )  # fmt: skip
         lens_extent = None if stages.lens_kernels is None else kernel_spread(stages.lens_kernels) * d
         if stages.kernels is None:  # as in training: a defocus-only view is the lens's blur in full

@@ -1,0 +1,62 @@
+"""`gsmsdr-bench memory` (gsmsdr_ns.bench.memory): argument parsing, the measuring child processes (a real one, and
+one over its address-space limit) and the merged results files."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+
+from gsmsdr_ns.bench.cli import entrypoint
+from gsmsdr_ns.bench.memory import measure, merge_rows, parse_overrides, parse_size
+
+
+def test_sizes_and_overrides_parse_and_bad_ones_name_the_fix():
+    assert parse_size("1297x840") == (1297, 840)
+    with pytest.raises(ValueError, match="WIDTHxHEIGHT"):
+        parse_size("600 by 400")
+    assert parse_overrides(["mode=view", "size=lite", "kernel_sizes=[5, 9]", "gaka=false", "switch_steps=None"]) == {
+        "mode": "view", "size": "lite", "kernel_sizes": (5, 9), "gaka": False, "switch_steps": None,
+    }  # fmt: skip
+    with pytest.raises(ValueError, match="no field 'feature_dim_typo'; fields: mode, size"):
+        parse_overrides(["feature_dim_typo=2"])
+    with pytest.raises(ValueError, match="expected key=value"):
+        parse_overrides(["mode"])
+
+
+def test_merged_rows_replace_the_same_configuration_and_keep_the_others():
+    old = [dict(size="600x400", lens="fused", field="default", v=1), dict(size="600x400", lens="unfused",
+                                                                           field="default", v=2)]  # fmt: skip
+    new = [dict(size="600x400", lens="fused", field="default", v=3), dict(size="600x400", lens="fused",
+                                                                         field="size=lite", v=4)]  # fmt: skip
+    assert [r["v"] for r in merge_rows(old, new)] == [3, 2, 4]
+
+
+def test_a_run_over_the_limit_is_reported_not_fatal():
+    spec = dict(width=30000, height=30000, kernel_size=9, lens="fused", overrides={"mode": "view",
+                "kernel_sizes": (5, 9)}, field=True, limit_bytes=5 * 2**30, threads=1)  # fmt: skip
+    result = measure(spec, timeout_s=600)
+    assert result["status"] == "> limit", result
+    assert "can't allocate memory" in result["error"]
+
+
+def test_the_command_measures_in_fresh_processes_and_merges_its_results(tmp_path, capsys):
+    out = tmp_path / "memory"
+    common = ["--sizes", "40x24", "--kernel-size", "9", "--set", "mode=view", "--set", "kernel_sizes=(5,9)",
+              "--threads", "1", "--out", str(out)]  # fmt: skip
+    entrypoint(["memory", "--lens", "fused", "unfused", "--no-field", *common])
+    printed = capsys.readouterr().out
+    assert "| 40x24 | fused | none |" in printed and "| 40x24 | unfused | none |" in printed
+    entrypoint(["memory", "--lens", "fused", *common])  # the field after the lens: a third row
+    with open(out / "results.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(r["lens"], r["field"]) for r in rows] == [
+        ("fused", "none"), ("unfused", "none"), ("fused", "mode=view kernel_sizes=(5, 9)"),
+    ]  # fmt: skip
+    for row in rows:
+        assert row["status"] == "ok" and float(row["extra_peak_mb"]) >= 0 and float(row["forward_s"]) > 0, row
+        assert row["method"] in ("VmHWM after clear_refs", "ru_maxrss")
+    markdown = (out / "results.md").read_text()
+    assert "gsmsdr-bench memory --lens fused --sizes 40x24" in markdown and markdown.count("| 40x24 |") == 3
+    with pytest.raises(SystemExit, match="no field 'nope'"):
+        entrypoint(["memory", "--set", "nope=1", "--out", str(out)])
