@@ -157,7 +157,7 @@ def _step(field, lens, scale: int, lens_impl: str, K: int, render, depth, grad) 
     else:
         image = BlurField.blur(render, lens(depth, ids, K, 1.0), linear_light)
     if field is not None:
-        kernels, mask = field(image, depth, ids, scale)
+        kernels, mask = field(image, depth, ids, scale, dense=False)  # as training: kernels kept on the field's grid
         image = BlurField.degrade(image, kernels, mask, linear_light)
     t1 = time.perf_counter()
     image.backward(grad)
