@@ -123,3 +123,40 @@ def test_degrade_cli_prints_the_undistortion_line(capture, tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "lens distortion" in printed and "undistorting" in printed
     assert (tmp_path / "cli" / "degradation.json").is_file()
+
+
+def test_degrade_undistorts_a_distorted_colmap_scene(capture, tmp_path):
+    """The same photos as a COLMAP scene (images/ + sparse/0 with one OPENCV camera, k1 = 0.06)."""
+    root = tmp_path / "colmap"
+    (root / "sparse" / "0").mkdir(parents=True)
+    root_images = root / "images"
+    root_images.mkdir()
+    w, h = capture["size"]
+    focal = capture["focal"]
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="OPENCV", width=w, height=h, camera_id=1,
+                                                    params=[focal, focal, w / 2, h / 2, K1, 0, 0, 0]))  # fmt: skip
+    frames = json.loads((capture["root"] / "transforms.json").read_text(encoding="utf8"))["frames"]
+    for i, frame in enumerate(frames):
+        name = Path(frame["file_path"]).name
+        (root_images / name).write_bytes((capture["root"] / frame["file_path"]).read_bytes())
+        c2w = np.asarray(frame["transform_matrix"]) @ np.diag([1.0, -1.0, -1.0, 1.0])  # OpenGL -> OpenCV axes
+        image = pycolmap.Image(name=name, keypoints=np.zeros((0, 2)), camera_id=1, image_id=i + 1)
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(np.linalg.inv(c2w)[:3, :4]))
+    rec.write(root / "sparse" / "0")
+    with pytest.raises(InputError, match=r"OPENCV camera with distortion"):
+        load_source(root)
+    notices = []
+    out = degrade_scene(root, tmp_path / "out", DegradeConfig(effects=(), hold=3, workers=1), notice=notices.append)
+    assert len(notices) == 1 and "OPENCV" in notices[0]
+    model = read_colmap(out / "sparse" / "0")
+    assert set(model.camera_models) == {"PINHOLE"} and len(model.names) == len(capture["names"])
+    # the same undistortion as for the transforms.json capture: identical cameras and pixels
+    from_transforms = degrade_scene(capture["root"], tmp_path / "tj", DegradeConfig(effects=(), hold=3, workers=1))
+    other = read_colmap(from_transforms / "sparse" / "0")
+    np.testing.assert_allclose(model.intrinsics, other.intrinsics, rtol=1e-6)
+    np.testing.assert_allclose(model.w2c, other.w2c, atol=1e-9)
+    for name in model.names:
+        a = read_image_float(out / "images_test" / name)
+        b = read_image_float(from_transforms / "images_test" / name)
+        assert np.abs(a - b).max() <= 1.0 / 255 + 1e-6
