@@ -61,6 +61,9 @@ class MethodSpec:
     """Train on the sharp twin of the scene (the upper bound) instead of its degraded images."""
     description: str = ""
     """One line for humans."""
+    true_records: bool = False
+    """On a scene built from real photos, train on its twin that carries the true degradation records (the scene
+    itself has none, so the dataparser estimates them)."""
 
     def make_config(self, data: Path, output_dir: Path):
         """The TrainerConfig of this method on ``data`` (schedules not yet shortened)."""
@@ -101,6 +104,9 @@ METHODS: Dict[str, MethodSpec] = {
         _method("full-per-pixel", "full, features at every pixel", "gsmsdr",
                 "full with the feature network at every pixel (feature_downsample 1, the paper's field)",
                 feature_downsample=1),  # fmt: skip
+        MethodSpec("full-true", "GS-MSDR (full, true records)", "gsmsdr", (), False,
+                   "full with the true degradation records of a real-photo scene (elsewhere the same as full)",
+                   true_records=True),  # fmt: skip
         _method("-view", "-view kernels", "gsmsdr", "full without per-view kernels (the paper's blur field)",
                 view_kernels=False),  # fmt: skip
         _method("view", "per-view kernels (mode view)", "gsmsdr",

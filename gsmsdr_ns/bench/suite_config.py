@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any, Callable, Dict, List, Mapping, Optional
 
 from gsmsdr_ns.bench.methods import METHODS, MethodSpec
+from gsmsdr_ns.bench.real_scenes import RealSceneSpec, parse_real_spec
 from gsmsdr_ns.bench.scenes import SceneSpec
 from gsmsdr_ns.io.config import read_yaml_mapping
 from gsmsdr_ns.io.errors import InputError
@@ -23,7 +24,8 @@ class SuiteConfigError(InputError):
 
 @dataclass(frozen=True)
 class SceneEntry:
-    """One scene of a suite: generated (``spec``) or the user's own (``path``, optional ``sharp_path``)."""
+    """One scene of a suite: generated (``spec``), built from real photos (``real``) or the user's own (``path``,
+    optional ``sharp_path``)."""
 
     name: str
     """Scene name in the tables and run ids."""
@@ -33,10 +35,12 @@ class SceneEntry:
     """A user scene's folder."""
     sharp_path: Optional[Path] = None
     """A user scene's sharp twin (for the ``sharp`` upper bound)."""
+    real: Optional[RealSceneSpec] = None
+    """A scene built from real photos (``gsmsdr_ns.bench.real_scenes``), or None."""
 
     @property
     def generated(self) -> bool:
-        return self.spec is not None
+        return self.spec is not None or self.real is not None
 
     def supports(self, method: MethodSpec) -> bool:
         """False for the sharp upper bound on a user scene without ``sharp_path``."""
@@ -49,6 +53,12 @@ class SceneEntry:
 
             spec = self.spec.with_variant("sharp") if method.sharp_data else self.spec
             return ensure_scene(scene_root, spec, log)
+        if self.real is not None:
+            from gsmsdr_ns.bench.real_scenes import ensure_real_scene
+
+            real = self.real.sharp_twin() if method.sharp_data else self.real
+            records = "true" if method.true_records and not method.sharp_data else "estimated"
+            return ensure_real_scene(scene_root, real, records, log=log)
         path = self.sharp_path if method.sharp_data else self.path
         assert path is not None
         return path
@@ -58,12 +68,16 @@ class SceneEntry:
             s = self.spec
             return (f"generated `{s.variant}`, {s.width}x{s.height}, {s.num_views} views (every {s.hold}th a sharp "
                     f"test view), {s.num_points} points, scene seed {s.seed}")  # fmt: skip
+        if self.real is not None:
+            return self.real.describe()
         sharp = f", sharp twin `{self.sharp_path}`" if self.sharp_path is not None else ""
         return f"user scene `{self.path}`{sharp}"
 
     def fingerprint(self) -> Dict[str, Any]:
         if self.spec is not None:
             return {"generated": dataclasses.asdict(self.spec)}
+        if self.real is not None:
+            return {"real": dataclasses.asdict(self.real)}
         return {"path": str(self.path), "sharp_path": None if self.sharp_path is None else str(self.sharp_path)}
 
 
@@ -186,10 +200,17 @@ def _parse_scene(item: Any, index: int, defaults: Dict[str, int], source: Path) 
         item = {"variant": item}
     if not isinstance(item, dict):
         raise _fail(source, key, f"must be a variant name or a mapping, got {type(item).__name__}")
-    if ("variant" in item) == ("path" in item):
-        raise _fail(source, key, "needs exactly one of 'variant' (a generated scene) or 'path' (a scene folder)")
+    if sum(k in item for k in ("variant", "path", "real")) != 1:
+        raise _fail(source, key, "needs exactly one of 'variant' (a generated scene), 'real' (a scene built from "
+                                 "real photos) or 'path' (a scene folder)")  # fmt: skip
     name = item.get("name")
-    if "variant" in item:
+    if "real" in item:
+        unknown = sorted(set(item) - {"real", "name"})
+        if unknown:
+            raise _fail(source, f"{key}.{unknown[0]}", "unknown key for a real-photo scene; valid: real, name")
+        real = parse_real_spec(item["real"], lambda k, message: _fail(source, f"{key}.real{k}", message))
+        entry = SceneEntry(name=name or real.degraded_name, real=real)
+    elif "variant" in item:
         variant = item["variant"]
         if variant not in VARIANTS:
             raise _fail(source, f"{key}.variant", f"unknown variant {variant!r}; valid: {', '.join(VARIANTS)}")

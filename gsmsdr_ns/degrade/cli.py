@@ -49,7 +49,11 @@ class DegradeCLI:
         t0 = time.perf_counter()
         log = (lambda msg: CONSOLE.log(msg)) if self.verbose else None
         preset_name = self.preset.stem if self.preset is not None else None
-        out = degrade_scene(self.input, self.out, self.config, self.overwrite, preset=preset_name, log=log)
+        def notice(message: str) -> None:  # shown without --verbose (the undistortion of a distorted input)
+            CONSOLE.print(message, soft_wrap=True, markup=False, highlight=False)
+
+        out = degrade_scene(self.input, self.out, self.config, self.overwrite, preset=preset_name, log=log,
+                            notice=notice)  # fmt: skip
         effects = "+".join(self.config.resolved_effects()) or "sharp"
         CONSOLE.print(f"[bold green]wrote {effects} scene (hold={self.config.hold}) to {out} "
                       f"in {time.perf_counter() - t0:.1f}s")  # fmt: skip

@@ -29,7 +29,7 @@ from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 
 from .. import __version__
 from ..data.cameras import llff_poses_bounds_rows
-from ..io.atomic import atomic_dir
+from ..io.atomic import atomic_dir, temp_sibling_dir
 from ..io.colmap import write_colmap_model
 from ..io.images import read_image_float, write_image
 from ..synth.config import SynthSceneConfig
@@ -46,6 +46,7 @@ from .effects import (
 )
 from .kernels import mixres_factors
 from .source import SourceScene, load_depth, load_source
+from .undistort import describe_distortion, undistort_scene
 
 FORMAT_VERSION = 1
 GENERATOR = f"gsmsdr-degrade {__version__}"
@@ -290,8 +291,13 @@ def degrade_scene(
     generator: str = GENERATOR,
     source_label: str | None = None,
     log: Callable[[str], None] | None = None,
+    notice: Callable[[str], None] | None = None,
 ) -> Path:
     """Degrade the sharp scene at input_dir into out_dir (Deblur-NeRF layout) and return out_dir.
+
+    An input with lens distortion is first undistorted to pinhole (``gsmsdr_ns.degrade.undistort``, pycolmap's
+    undistorter, as ``gsmsdr-process``), in a hidden folder beside out_dir that is removed afterwards; the degraded
+    scene is the undistorted one, and ``notice`` (default: ``log``) gets one line saying so.
 
     The input is validated first (cameras, every image decodable and of the camera's size). Everything is
     written into a hidden temp directory beside out_dir and renamed into place at the end; any error (or
@@ -306,15 +312,29 @@ def degrade_scene(
     if inp.resolve() == out.resolve() or out.resolve() in inp.resolve().parents:
         raise ValueError(f"the output {out} must not be (or contain) the input scene {inp}")
     check_target(out, overwrite)
-    src = load_source(inp)
-    with atomic_dir(out) as tmp:
-        (tmp / "images").mkdir()
-        (tmp / "images_test").mkdir()
-        jobs = plan_views(src, cfg, tmp)
-        records = _run_jobs(jobs, _num_workers(cfg, jobs), log)
-        meta = {"generator": generator, "source": source_label or str(inp), "preset": preset}
-        _write_metadata(tmp, src, jobs, records, meta, cfg)
-        check_target(out, overwrite)  # re-check: something may have appeared meanwhile
+    if (inp / "degradation.json").exists():
+        load_source(inp)  # refuses an already degraded scene, before undistorting anything
+    distortion = describe_distortion(inp)
+    work = temp_sibling_dir(out, "undistort") if distortion is not None else None
+    try:
+        if work is not None:
+            (notice or log)(f"{inp} has lens distortion ({distortion}); undistorting it to pinhole images first "
+                            "(the degraded scene is the undistorted one)")  # fmt: skip
+            src = load_source(undistort_scene(inp, work))
+            src.depth_paths = []  # depth maps of the distorted images do not fit the undistorted ones
+        else:
+            src = load_source(inp)
+        with atomic_dir(out) as tmp:
+            (tmp / "images").mkdir()
+            (tmp / "images_test").mkdir()
+            jobs = plan_views(src, cfg, tmp)
+            records = _run_jobs(jobs, _num_workers(cfg, jobs), log)
+            meta = {"generator": generator, "source": source_label or str(inp), "preset": preset}
+            _write_metadata(tmp, src, jobs, records, meta, cfg)
+            check_target(out, overwrite)  # re-check: something may have appeared meanwhile
+    finally:
+        if work is not None:
+            shutil.rmtree(work, ignore_errors=True)
     return out
 
 

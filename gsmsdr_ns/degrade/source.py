@@ -68,8 +68,8 @@ def _load_colmap(root: Path, model_dir: Path) -> SourceScene:
         if np.any(model.distortion[v] != 0):
             raise InputError(
                 f"{model_dir}: image '{name}' has a {model.camera_models[v]} camera with distortion "
-                f"{model.distortion[v].tolist()}; degrading needs undistorted pinhole images (run `colmap "
-                "image_undistorter` first)"
+                f"{model.distortion[v].tolist()}; degrading needs undistorted pinhole images (`degrade_scene` and "
+                "gsmsdr-degrade undistort such a scene first)"
             )
     order = sorted(range(len(model.names)), key=lambda v: _out_name(model.names[v]))
     names = [_out_name(model.names[v]) for v in order]
@@ -108,7 +108,21 @@ def _sparse_points(model: ColmapModel, order: list[int]) -> SparsePoints | None:
     )
 
 
-def _load_transforms(root: Path, path: Path) -> SourceScene:
+@dataclass
+class TransformsFrame:
+    """One frame of a transforms.json capture, as read (distortion not applied)."""
+
+    name: str  # output name <stem>.png
+    path: Path  # the image file
+    K: np.ndarray  # [3, 3] pinhole intrinsics
+    size: tuple[int, int]  # (width, height)
+    w2c: np.ndarray  # [4, 4] cam_from_world
+    distortion: list[float]  # k1, k2, k3, k4, p1, p2
+
+
+def read_transforms_frames(root: Path, path: Path) -> list[TransformsFrame]:
+    """The frames of a transforms.json capture sorted by output name, with their distortion; InputError naming the
+    frame for bad entries."""
     try:
         meta = json.loads(path.read_text(encoding="utf8"))
     except (OSError, ValueError) as e:
@@ -129,8 +143,6 @@ def _load_transforms(root: Path, path: Path) -> SourceScene:
         if not img_path.suffix and not img_path.exists() and img_path.with_suffix(".png").exists():
             img_path = img_path.with_suffix(".png")  # Blender-style paths without extension
         dist = [float(get(k) or 0.0) for k in ("k1", "k2", "k3", "k4", "p1", "p2")]
-        if any(abs(d) > 0 for d in dist):
-            raise InputError(f"{where}: non-zero distortion {dist}; degrading needs undistorted images")
         w, h = get("w"), get("h")
         if w is None or h is None:
             w, h = read_image_float(img_path).shape[1::-1]
@@ -150,20 +162,31 @@ def _load_transforms(root: Path, path: Path) -> SourceScene:
         if c2w_gl.shape != (4, 4) or not np.isfinite(c2w_gl).all():
             raise InputError(f"{where}: transform_matrix must be a finite 4x4 matrix")
         w2c = world_to_camera(c2w_gl @ OPENGL_TO_OPENCV)
-        entries.append((_out_name(img_path.name), img_path, K, (w, h), w2c))
-    entries.sort(key=lambda e: e[0])
-    names = [e[0] for e in entries]
+        entries.append(TransformsFrame(_out_name(img_path.name), img_path, K, (w, h), w2c, dist))
+    entries.sort(key=lambda e: e.name)
+    names = [e.name for e in entries]
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
         raise InputError(f"{path}: several frames map to the same output name(s) {dup}")
+    return entries
+
+
+def _load_transforms(root: Path, path: Path) -> SourceScene:
+    entries = read_transforms_frames(root, path)
+    for e in entries:
+        if any(abs(d) > 0 for d in e.distortion):
+            raise InputError(
+                f"{path}: frame {e.path.name} has non-zero distortion {e.distortion}; degrading needs undistorted "
+                "images (`degrade_scene` and gsmsdr-degrade undistort such a capture first)"
+            )
     return SourceScene(
         root=root,
         kind="transforms",
-        names=names,
-        image_paths=[e[1] for e in entries],
-        Ks=np.stack([e[2] for e in entries]),
-        sizes=[e[3] for e in entries],
-        w2cs=np.stack([e[4] for e in entries]),
+        names=[e.name for e in entries],
+        image_paths=[e.path for e in entries],
+        Ks=np.stack([e.K for e in entries]),
+        sizes=[e.size for e in entries],
+        w2cs=np.stack([e.w2c for e in entries]),
     )
 
 

@@ -1,0 +1,182 @@
+"""The real-photo bench suite (configs/bench/real.yaml): its file parses, and a scene built from six real fern
+photos (structure-from-motion on the sharp photos, gsmsdr-degrade, structure-from-motion on the degraded training
+photos alone, the sharp test photos registered into that model) has the layout, poses and records each method
+trains on. The slow test runs the suite end to end on that scene with nerfstudio's trainer."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gsmsdr_ns.bench.methods import METHODS
+from gsmsdr_ns.bench.real_scenes import DATA_DIR_ENV, RealSceneSpec, resolve_photos
+from gsmsdr_ns.bench.suite_config import SuiteConfigError, find_suite_file, load_suite
+from gsmsdr_ns.io.colmap import read_colmap
+from gsmsdr_ns.io.errors import InputError
+from gsmsdr_ns.io.images import read_image_float
+
+NUM_PHOTOS = 6
+
+
+def fern_dir() -> Path:
+    """llff-fern in ``shared/data/`` above the repository (beside the main checkout; CI has it)."""
+    for folder in Path(__file__).resolve().parents:
+        candidate = folder / "shared" / "data" / "llff-fern"
+        if (candidate / "images_16").is_dir():
+            return candidate
+    pytest.fail("llff-fern photos not found in shared/data/ above the repository (the CI checkout has them)")
+
+
+def suite_text(methods: str = "[plain, full, full-true, sharp]", steps: int = 20) -> str:
+    return textwrap.dedent(f"""\
+        name: real-tiny
+        scenes:
+          - name: fern6-motion
+            real: {{dataset: fern6, images: images_16, preset: motion-mild, hold: 3, train_downscale: 2}}
+        methods: {methods}
+        steps: [{steps}]
+        eval_every: 10
+        schedule: {{num_downscales: 0}}
+        threads: 1
+        lpips: false
+        """)
+
+
+@pytest.fixture(scope="module")
+def photo_set(tmp_path_factory) -> Path:
+    """A data folder holding ``fern6/images_16``: the first six fern photos (252x189)."""
+    root = tmp_path_factory.mktemp("data")
+    folder = root / "fern6" / "images_16"
+    folder.mkdir(parents=True)
+    for name in sorted(p.name for p in (fern_dir() / "images_16").iterdir())[:NUM_PHOTOS]:
+        shutil.copyfile(fern_dir() / "images_16" / name, folder / name)
+    return root
+
+
+@pytest.fixture(scope="module")
+def built(photo_set, tmp_path_factory) -> dict:
+    """The scenes of ``full`` (estimated records), ``full-true`` and ``sharp`` on the six photos."""
+    work = tmp_path_factory.mktemp("bench")
+    config = work / "real-tiny.yaml"
+    config.write_text(suite_text(), encoding="utf8")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv(DATA_DIR_ENV, str(photo_set))
+        suite = load_suite(config)
+        scene = suite.scenes[0]
+        logs: list = []
+        data = {m: scene.data(METHODS[m], work, logs.append) for m in ("full", "full-true", "sharp", "plain")}
+    return {"suite": suite, "data": data, "logs": logs, "work": work}
+
+
+def test_shipped_real_suite_parses() -> None:
+    suite = load_suite(find_suite_file("real"))
+    assert [s.name for s in suite.scenes] == ["fern-motion", "fern-sharp"]
+    motion, sharp = (s.real for s in suite.scenes)
+    assert motion.dataset == "llff-fern" and motion.preset == "motion-strong" and sharp.preset == "sharp"
+    assert motion.images == sharp.images and motion.train_downscale == sharp.train_downscale  # the YAML merge key
+    assert suite.methods == ["plain", "full", "full-true", "view", "sharp"] and suite.steps == [3000]
+    assert suite.threads == 1 and "registered" in suite.scenes[0].describe()
+
+
+@pytest.mark.parametrize(
+    "old, new, key",
+    [
+        ("preset: motion-mild", "preset: motion-blurry", "scenes[0].real.preset"),
+        ("hold: 3", "hold: 1", "scenes[0].real.hold"),
+        ("train_downscale: 2", "train_downscal: 2", "scenes[0].real.train_downscal"),
+        ("images: images_16", "images: 16", "scenes[0].real.images"),
+        ("    real:", "    path: x\n    real:", "scenes[0]"),
+    ],
+)
+def test_invalid_real_scene_names_file_and_key(tmp_path: Path, old: str, new: str, key: str) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text(suite_text().replace(old, new), encoding="utf8")
+    with pytest.raises(SuiteConfigError, match=re.escape(f"{path}: {key}:")):
+        load_suite(path)
+
+
+def test_missing_photo_set_says_where_it_looked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(DATA_DIR_ENV, str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputError, match=rf"photo set 'no-such-set'.*{tmp_path}/no-such-set/images_16.*{DATA_DIR_ENV}"):
+        resolve_photos(RealSceneSpec(dataset="no-such-set"))
+    assert resolve_photos(RealSceneSpec(dataset=str(fern_dir()))) == fern_dir() / "images_16"
+
+
+def test_each_method_gets_its_scene(built) -> None:
+    data = built["data"]
+    assert data["plain"] == data["full"] != data["full-true"] != data["sharp"]
+    assert "motion-mild" in data["full"].name and "-sharp-" in data["sharp"].name
+    for folder in data.values():
+        assert (folder / "hold=3").is_file() and (folder / "real_scene.json").is_file()
+    assert not (data["full"] / "degradation.json").exists(), "the default method must estimate its records"
+    doc = json.loads((data["full-true"] / "degradation.json").read_text(encoding="utf8"))
+    splits = {n: e["split"] for n, e in doc["images"].items()}
+    names = sorted(p.name for p in (data["full"] / "images").iterdir())
+    assert [splits[n] for n in names] == ["test", "train", "train", "test", "train", "train"]
+    assert all("motion" in doc["images"][n]["effects"] for n in names if splits[n] == "train")
+    assert any("registered" in line for line in built["logs"])
+
+
+def test_scenes_share_cameras_and_differ_only_where_they_should(built) -> None:
+    data = built["data"]
+    estimated, true = (read_colmap(data[m] / "sparse" / "0", tracks=True) for m in ("full", "full-true"))
+    np.testing.assert_array_equal(estimated.w2c, true.w2c)
+    assert set(estimated.camera_models) == {"PINHOLE"} and len(estimated.names) == NUM_PHOTOS
+    assert len(estimated.points.xyz) > 50
+    test_views = {estimated.names[i] for i in (0, 3)}
+    # the test photos of the training scene observe no point: the model was built from the degraded photos alone
+    assert not set(estimated.points.obs_view.tolist()) & {0, 3}
+    facts = json.loads((data["full"] / "real_scene.json").read_text(encoding="utf8"))
+    assert set(facts["test_views"]) == test_views and facts["training_poses_moved_by_registration"] < 1e-9
+    for name in estimated.names:
+        motion = read_image_float(data["full"] / "images" / name)
+        sharp = read_image_float(data["sharp"] / "images" / name)
+        for image in (motion, sharp):  # 252x189, resampled by the undistortion, then shrunk 2x
+            assert 90 <= image.shape[1] <= 140 and 68 <= image.shape[0] <= 105, image.shape
+        blurred = float(np.abs(np.diff(motion, axis=1)).mean()) < 0.9 * float(np.abs(np.diff(sharp, axis=1)).mean())
+        assert blurred == (name not in test_views), name
+
+
+def test_registered_test_poses_agree_with_the_sharp_run(built) -> None:
+    """Test cameras registered into the degraded model, carried onto the sharp photos' own SfM run by the similarity
+    of the training cameras (their mean rotation; scale and shift of their centres), land where that run put them:
+    centres within 5% of the trajectory diameter, orientations within 1.5 degrees."""
+    scenes = built["work"] / "scenes"
+    sharp_run = read_colmap(next(scenes.glob("fern6-images_16-sfm-*")) / "sparse" / "0")
+    degraded = read_colmap(built["data"]["full"] / "sparse" / "0")
+    assert sharp_run.names == degraded.names
+    train, test = [1, 2, 4, 5], [0, 3]
+    u, _, vt = np.linalg.svd(sum(sharp_run.c2w[i, :3, :3] @ degraded.c2w[i, :3, :3].T for i in train))
+    rotation = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    src, tgt = degraded.c2w[:, :3, 3] @ rotation.T, sharp_run.c2w[:, :3, 3]
+    src_c, tgt_c = src[train] - src[train].mean(0), tgt[train] - tgt[train].mean(0)
+    scale = float(np.sum(src_c * tgt_c) / np.sum(src_c**2))
+    mapped = scale * (src - src[train].mean(0)) + tgt[train].mean(0)
+    diameter = np.linalg.norm(tgt[:, None] - tgt[None], axis=2).max()
+    for i in test:
+        assert np.linalg.norm(mapped[i] - tgt[i]) < 0.05 * diameter
+        relative = rotation @ degraded.c2w[i, :3, :3] @ sharp_run.c2w[i, :3, :3].T
+        angle = np.degrees(np.arccos(np.clip((np.trace(relative) - 1) / 2, -1, 1)))
+        assert angle < 1.5, angle
+
+
+@pytest.mark.slow
+def test_real_suite_end_to_end(photo_set, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from gsmsdr_ns.bench.runner import run_suite
+
+    monkeypatch.setenv(DATA_DIR_ENV, str(photo_set))
+    config = tmp_path / "real-tiny.yaml"
+    config.write_text(suite_text("[plain, full, full-true, sharp]", steps=20), encoding="utf8")
+    outcome = run_suite(load_suite(config), tmp_path / "out", progress=False, plots=False)
+    assert not outcome.failed and len(outcome.trained) == 4
+    by_method = {r["method"]: r for r in outcome.records}
+    assert by_method["full"]["data"].endswith("-estimated") and by_method["full-true"]["data"].endswith("-true")
+    assert all(np.isfinite(r["psnr"]) and r["num_test_views"] == 2 for r in outcome.records)
+    assert "fern6-motion" in (tmp_path / "out" / "results.md").read_text(encoding="utf8")
