@@ -112,8 +112,8 @@ def test_user_scene_without_sharp_twin_skips_the_upper_bound(tmp_path: Path) -> 
 
 
 def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
-    assert set(METHODS) == {"plain", "msd-only", "re-only", "full", "full-true", "full-per-pixel", "-view", "view", "-gaka", "-safm",
-                            "-mca", "-rgbd", "gsmsdr-lite", "sharp"}  # fmt: skip
+    assert set(METHODS) == {"plain", "msd-only", "re-only", "full", "full-true", "full-per-pixel", "-view", "view",
+                            "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite", "sharp"}  # fmt: skip
 
     def model(name: str):
         return METHODS[name].make_config(tmp_path, tmp_path / "out").pipeline.model
