@@ -66,7 +66,11 @@ def test_wheel_carries_the_configs(tmp_path: Path) -> None:
     unpacked = tmp_path / "site"
     with zipfile.ZipFile(wheel) as archive:
         packaged = sorted(n for n in archive.namelist() if n.startswith("gsmsdr_ns/configs/"))
+        sources = {n for n in archive.namelist() if "/csrc/" in n}
         archive.extractall(unpacked)
+    # the C++ ops are compiled on first use: every source and header they include must be in the wheel
+    repo_sources = {str(p.relative_to(REPO)) for p in (REPO / "gsmsdr_ns").rglob("csrc/*") if p.is_file()}
+    assert sources == repo_sources
     assert packaged == sorted(f"gsmsdr_ns/configs/{name}" for name in _repo_configs())
     for name, path in _repo_configs().items():
         assert (unpacked / "gsmsdr_ns" / "configs" / name).read_bytes() == path.read_bytes(), name

@@ -28,6 +28,8 @@
 #include <ATen/ops/empty.h>
 #include <torch/library.h>
 
+#include "row_ops.h"
+
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -40,6 +42,11 @@ namespace gsmsdr_grid {
 using at::Tensor;
 
 namespace {
+
+using gsmsdr_rows::clamp_row;
+using gsmsdr_rows::interior;
+using gsmsdr_rows::shifted_fma;
+using gsmsdr_rows::shifted_fma_adjoint;
 
 struct Dims {
     int64_t B, C, H, W, K, p, HW, h, w, hw, r;
@@ -58,13 +65,6 @@ inline Stencil stencil(int64_t o, int64_t r, int64_t n) {
     int64_t hi = std::min<int64_t>(lo + 1, n - 1);
     return Stencil{lo, hi, src - static_cast<double>(lo)};
 }
-
-inline void interior(int64_t W, int64_t d, int64_t &lo, int64_t &hi) {
-    lo = std::min<int64_t>(std::max<int64_t>(-d, 0), W);
-    hi = std::max<int64_t>(std::min<int64_t>(W - d, W), lo);
-}
-
-inline int64_t clamp_row(int64_t r, int64_t H) { return std::min<int64_t>(std::max<int64_t>(r, 0), H - 1); }
 
 template <typename S> struct Columns {
     std::vector<int64_t> lo, hi;
@@ -91,36 +91,6 @@ inline void weight_row(S *__restrict__ dst, S *__restrict__ mix, const S *grid_k
         const S l = mix[cols.lo[x]];
         dst[x] = l + cols.t[x] * (mix[cols.hi[x]] - l);
     }
-}
-
-// dst[x] += w[x] * src[clamp(x + d)]
-template <typename S>
-inline void shifted_fma(S *__restrict__ dst, const S *__restrict__ w, const S *__restrict__ src, int64_t W,
-                        int64_t d, int64_t lo, int64_t hi) {
-    const S first = src[0], last = src[W - 1];
-    for (int64_t x = 0; x < lo; ++x) dst[x] += w[x] * first;
-    const S *sp = src + lo + d;
-    S *o = dst + lo;
-    const S *ww = w + lo;
-    const int64_t n = hi - lo;
-    for (int64_t x = 0; x < n; ++x) o[x] += ww[x] * sp[x];
-    for (int64_t x = hi; x < W; ++x) dst[x] += w[x] * last;
-}
-
-// dst[clamp(x + d)] += w[x] * g[x]
-template <typename S>
-inline void shifted_fma_adjoint(S *__restrict__ dst, const S *__restrict__ w, const S *__restrict__ g, int64_t W,
-                                int64_t d, int64_t lo, int64_t hi) {
-    S first = 0, last = 0;
-    for (int64_t x = 0; x < lo; ++x) first += w[x] * g[x];
-    for (int64_t x = hi; x < W; ++x) last += w[x] * g[x];
-    S *o = dst + lo + d;
-    const S *ww = w + lo;
-    const S *gg = g + lo;
-    const int64_t n = hi - lo;
-    for (int64_t x = 0; x < n; ++x) o[x] += ww[x] * gg[x];
-    dst[0] += first;
-    dst[W - 1] += last;
 }
 
 template <typename S>
