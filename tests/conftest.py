@@ -117,3 +117,49 @@ def trained_run(tiny_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> T
     assert proc.returncode == 0, f"ns-train failed (exit {proc.returncode}):\n{log[-6000:]}"
     run_dir = work / "outputs" / tiny_scene.name / "gsmsdr" / "run"
     return TrainedRun(tiny_scene, run_dir, run_dir / "config.yml", run_dir / "nerfstudio_models", log, TRAIN_STEPS)
+
+
+def write_transforms_json(src: Path, dst: Path) -> Path:
+    """A nerfstudio transforms.json scene (OpenGL camera-to-world, per-frame OPENCV intrinsics) from the COLMAP scene
+    ``src``, written to ``dst`` (images copied)."""
+    import json
+    import shutil
+
+    from gsmsdr_ns.data.cameras import cameras_from_colmap
+    from gsmsdr_ns.io.colmap import read_colmap
+
+    shutil.copytree(src / "images", dst / "images")
+    cameras = cameras_from_colmap(read_colmap(src / "sparse" / "0"))
+    frames = []
+    for name, c2w, (fx, fy, cx, cy), (w, h) in zip(cameras.names, cameras.c2w, cameras.intrinsics, cameras.sizes):
+        gl = c2w.copy()
+        gl[:3, 1:3] *= -1
+        frames.append({"file_path": f"images/{name}", "transform_matrix": gl.tolist(), "fl_x": fx, "fl_y": fy,
+                       "cx": cx, "cy": cy, "w": int(w), "h": int(h)})  # fmt: skip
+    (dst / "transforms.json").write_text(json.dumps({"camera_model": "OPENCV", "frames": frames}))
+    return dst
+
+
+def cpu_trainer_config(scene: Path, output_dir: Path, max_steps: int):
+    """The ``gsmsdr`` TrainerConfig on ``scene`` as the in-process trainer tests use it: CPU, tensorboard only, no
+    periodic saves, evaluations or logs, nothing known about the images (thin lens + field on every image), a lite
+    blur field on from step 0, full resolution from the start."""
+    from gsmsdr_ns.blur.field import BlurFieldConfig
+    from gsmsdr_ns.plugin.method_config import gsmsdr_trainer_config
+
+    config = gsmsdr_trainer_config()
+    config.machine.device_type = "cpu"
+    config.vis = "tensorboard"
+    config.output_dir = output_dir
+    config.timestamp = "run"
+    config.max_num_iterations = max_steps
+    config.steps_per_save = 10_000
+    config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
+    config.logging.steps_per_log = 10_000
+    config.logging.local_writer.enable = False
+    config.pipeline.datamanager.data = scene
+    config.pipeline.datamanager.dataparser.estimate_degradations = False  # unknown images: lens + field
+    model = config.pipeline.model
+    model.num_downscales, model.warmup_length = 0, 2
+    model.blur_field = BlurFieldConfig(size="lite", kernel_sizes=(3, 5, 9), warmup=0)
+    return config

@@ -29,6 +29,7 @@ from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.plugin.auto_dataparser import GSMSDRAutoDataParserConfig
 from gsmsdr_ns.plugin.dataparser import GSMSDRDataParserConfig
 from gsmsdr_ns.plugin.deblur_dataparser import DeblurNerfDataParserConfig
+from conftest import write_transforms_json
 
 TRAIN_VIEW = "frame_00003.png"  # index 3: a training view under hold=8 (views 0 and 8 are held out)
 
@@ -52,20 +53,6 @@ def make_deblur_scene(src: Path, dst: Path, colmap: bool = True) -> Path:
     doc = {"version": 1, "generator": "test", "source": str(src), "seed": 0, "hold": 8, "effects": ["defocus"],
            "preset": None, "images": images}  # fmt: skip
     (dst / "degradation.json").write_text(json.dumps(doc))
-    return dst
-
-
-def write_transforms_json(src: Path, dst: Path) -> Path:
-    """``src`` (a COLMAP scene) as a nerfstudio transforms.json scene (OpenGL camera-to-world)."""
-    shutil.copytree(src / "images", dst / "images")
-    cameras = cameras_from_colmap(read_colmap(src / "sparse" / "0"))
-    frames = []
-    for name, c2w, (fx, fy, cx, cy), (w, h) in zip(cameras.names, cameras.c2w, cameras.intrinsics, cameras.sizes):
-        gl = c2w.copy()
-        gl[:3, 1:3] *= -1
-        frames.append({"file_path": f"images/{name}", "transform_matrix": gl.tolist(), "fl_x": fx, "fl_y": fy,
-                       "cx": cx, "cy": cy, "w": int(w), "h": int(h)})  # fmt: skip
-    (dst / "transforms.json").write_text(json.dumps({"camera_model": "OPENCV", "frames": frames}))
     return dst
 
 

@@ -29,7 +29,7 @@ from gsmsdr_ns.plugin.auto_dataparser import GSMSDRAutoDataParser, GSMSDRAutoDat
 from gsmsdr_ns.plugin.dataparser import GSMSDRDataParser, GSMSDRDataParserConfig
 from gsmsdr_ns.plugin.deblur_dataparser import DeblurNerfDataParser, DeblurNerfDataParserConfig
 from gsmsdr_ns.plugin.mixres_dataparser import MixresDataParserConfig
-from conftest import TRAIN_FLAGS, make_tiny_scene, run_cli
+from conftest import TRAIN_FLAGS, make_tiny_scene, run_cli, write_transforms_json
 
 NUM_VIEWS = 16
 TEST_NAMES = ["frame_00000.png", "frame_00008.png"]  # index % 8 == 0 among 16 views sorted by name
@@ -481,20 +481,6 @@ def test_mixres_cache_path_option(colmap_scene, tmp_path):
 
 
 # ----------------------------------------------------------------------------------------------------- gsmsdr-data
-
-
-def write_transforms_json(src: Path, dst: Path) -> Path:
-    """A nerfstudio transforms.json scene (OpenGL camera-to-world) from a COLMAP scene."""
-    shutil.copytree(src / "images", dst / "images")
-    cameras = cameras_from_colmap(read_colmap(src / "sparse" / "0"))
-    frames = []
-    for name, c2w, (fx, fy, cx, cy), (w, h) in zip(cameras.names, cameras.c2w, cameras.intrinsics, cameras.sizes):
-        gl = c2w.copy()
-        gl[:3, 1:3] *= -1
-        frames.append({"file_path": f"images/{name}", "transform_matrix": gl.tolist(), "fl_x": fx, "fl_y": fy,
-                       "cx": cx, "cy": cy, "w": int(w), "h": int(h)})  # fmt: skip
-    (dst / "transforms.json").write_text(json.dumps({"camera_model": "OPENCV", "frames": frames}))
-    return dst
 
 
 def make_layout(kind: str, synth16: Path, root: Path) -> Path:

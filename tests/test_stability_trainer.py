@@ -13,7 +13,7 @@ import pytest
 import torch
 from stability_common import all_finite, single_thread  # noqa: F401  (single_thread: autouse fixture)
 
-from gsmsdr_ns.blur.field import BlurFieldConfig
+from conftest import cpu_trainer_config
 
 
 @pytest.fixture(scope="module")
@@ -28,30 +28,18 @@ def tiny_training_scene(tmp_path_factory) -> Path:
 def trainer_factory(tiny_training_scene, tmp_path):
     """Builds a nerfstudio Trainer for ``gsmsdr`` through its TrainerConfig (what ``ns-train gsmsdr`` runs) on the
     tiny scene: CPU, images cached as float32 (so a NaN can be written into one), blur field on from step 0."""
-    from gsmsdr_ns.plugin.method_config import gsmsdr_trainer_config
+    import gsmsdr_ns.plugin.method_config  # noqa: F401  (our configs load before nerfstudio's writer, below)
 
     from nerfstudio.utils import writer  # after the configs: importing it first is a circular import
 
     saved_writers = list(writer.EVENT_WRITERS)
 
     def build(max_steps: int):
-        config = gsmsdr_trainer_config()
-        config.machine.device_type = "cpu"
-        config.vis = "tensorboard"
-        config.output_dir = tmp_path / "outputs"
-        config.timestamp = "run"
-        config.max_num_iterations = max_steps
-        config.steps_per_save = 10_000
-        config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
-        config.logging.steps_per_log = 10_000
-        config.logging.local_writer.enable = False
-        config.pipeline.datamanager.data = tiny_training_scene
-        config.pipeline.datamanager.dataparser.estimate_degradations = False  # unknown images: lens + field
+        config = cpu_trainer_config(tiny_training_scene, tmp_path / "outputs", max_steps)
         config.pipeline.datamanager.cache_images_type = "float32"
         model = config.pipeline.model
-        model.num_downscales, model.warmup_length, model.refine_every = 0, 2, 2
+        model.refine_every = 2
         model.finite_check_every = 1  # stop at the bad step itself (test_step_syncs covers the deferred check)
-        model.blur_field = BlurFieldConfig(size="lite", kernel_sizes=(3, 5, 9), warmup=0)
         trainer = config.setup(local_rank=0, world_size=1)
         trainer.setup()
         return trainer

@@ -28,8 +28,8 @@ import torch
 from stability_common import single_thread  # noqa: F401  (single_thread: autouse fixture)
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from gsmsdr_ns.blur.field import BlurFieldConfig
 from gsmsdr_ns.plugin.finite_check import NonFiniteLossError, NonFiniteRecorder
+from conftest import cpu_trainer_config
 
 MAX_OPS_PER_BLURRED_STEP = 3700
 """Bound on the aten operators one blurred training step issues on the CPU (forward with the thin lens and the blur
@@ -140,28 +140,16 @@ def sync_scene(tmp_path_factory) -> Path:
 def build_trainer(sync_scene, tmp_path):
     """A nerfstudio Trainer for ``gsmsdr`` on the tiny scene, built through its TrainerConfig (what ``ns-train``
     runs): CPU, nothing known about the images (thin lens + blur field on every step from step 0), refinement off."""
-    from gsmsdr_ns.plugin.method_config import gsmsdr_trainer_config
+    import gsmsdr_ns.plugin.method_config  # noqa: F401  (our configs load before nerfstudio's writer, below)
 
     from nerfstudio.utils import writer  # after the configs: importing it first is a circular import
 
     saved_writers = list(writer.EVENT_WRITERS)
 
     def build(max_steps: int, **model_overrides):
-        config = gsmsdr_trainer_config()
-        config.machine.device_type = "cpu"
-        config.vis = "tensorboard"
-        config.output_dir = tmp_path / "outputs"
-        config.timestamp = "run"
-        config.max_num_iterations = max_steps
-        config.steps_per_save = 10_000
-        config.steps_per_eval_image = config.steps_per_eval_batch = config.steps_per_eval_all_images = 0
-        config.logging.steps_per_log = 10_000
-        config.logging.local_writer.enable = False
-        config.pipeline.datamanager.data = sync_scene
-        config.pipeline.datamanager.dataparser.estimate_degradations = False  # unknown images: lens + field
+        config = cpu_trainer_config(sync_scene, tmp_path / "outputs", max_steps)
         model = config.pipeline.model
-        model.num_downscales, model.warmup_length, model.refine_every = 0, 2, 10_000
-        model.blur_field = BlurFieldConfig(size="lite", kernel_sizes=(3, 5, 9), warmup=0)
+        model.refine_every = 10_000
         for name, value in model_overrides.items():
             setattr(model, name, value)
         trainer = config.setup(local_rank=0, world_size=1)
