@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.colmap import read_colmap
+from ..io.colmap import read_colmap, write_colmap_model
 from ..io.errors import InputError
 from .source import read_transforms_frames
 
@@ -48,28 +48,24 @@ def _format(values) -> str:
     return " ".join(f"{float(v):.4g}" for v in values)
 
 
-def _transforms_reconstruction(root: Path, flat: Path):
-    """(pycolmap.Reconstruction with OPENCV / FULL_OPENCV cameras, one per frame, and no points) of the
-    transforms.json capture at ``root``; its image names are the frames' output names, linked in ``flat``."""
-    import pycolmap
-
-    rec = pycolmap.Reconstruction()
-    for i, frame in enumerate(read_transforms_frames(root, root / "transforms.json")):
-        k1, k2, k3, k4, p1, p2 = frame.distortion
-        fx, fy, cx, cy = frame.K[0, 0], frame.K[1, 1], frame.K[0, 2], frame.K[1, 2]
-        if k3 == 0 and k4 == 0:
-            model, params = "OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2]
-        else:
-            model, params = "FULL_OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, 0.0, 0.0]
-        width, height = frame.size
-        rec.add_camera_with_trivial_rig(
-            pycolmap.Camera(model=model, width=width, height=height, params=params, camera_id=i + 1)
-        )
+def _write_transforms_model(root: Path, flat: Path, model_dir: Path) -> None:
+    """Write the transforms.json capture at ``root`` as a COLMAP model with its distorted cameras (OPENCV /
+    FULL_OPENCV) and no points into ``model_dir``; its image names are the frames' output names, linked in
+    ``flat``."""
+    frames = read_transforms_frames(root, root / "transforms.json")
+    names = []
+    for frame in frames:
         name = Path(frame.name).stem + frame.path.suffix  # the undistorter keeps the file format
         os.symlink(frame.path.absolute(), flat / name)
-        image = pycolmap.Image(name=name, keypoints=np.zeros((0, 2)), camera_id=i + 1, image_id=i + 1)
-        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(frame.w2c[:3, :4]))
-    return rec
+        names.append(name)
+    write_colmap_model(
+        model_dir,
+        names,
+        np.stack([frame.K for frame in frames]),
+        [frame.size for frame in frames],
+        np.stack([frame.w2c for frame in frames]),
+        distortion=[frame.distortion for frame in frames],
+    )
 
 
 def undistort_scene(root: str | Path, work: str | Path) -> Path:
@@ -85,7 +81,7 @@ def undistort_scene(root: str | Path, work: str | Path) -> Path:
         images, distorted = work / "frames", work / "distorted"
         images.mkdir()
         distorted.mkdir()
-        _transforms_reconstruction(root, images).write(distorted)
+        _write_transforms_model(root, images, distorted)
     else:
         raise InputError(f"{root} has no COLMAP model (sparse/0/) and no transforms.json: nothing to undistort")
     undistorted = work / "undistorted"

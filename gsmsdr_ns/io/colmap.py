@@ -384,12 +384,15 @@ def build_reconstruction(
     sizes: Sequence[Tuple[int, int]],
     w2cs: np.ndarray,
     points: Optional[Any] = None,
+    distortion: Optional[Sequence[Sequence[float]]] = None,
 ):
     """In-memory pycolmap.Reconstruction: image ids 1..V in the given order, identical intrinsics share a camera.
 
     Ks: [V, 3, 3] PINHOLE (no skew); sizes: V x (width, height); w2cs: [V, 4, 4] (or [V, 3, 4]) cam_from_world.
     ``points`` has ``xyz`` [P, 3], ``rgb`` [P, 3] uint8 and observations ``obs_point`` / ``obs_view`` [O] (view
     index) / ``obs_uv`` [O, 2] (``gsmsdr_ns.synth.points.SparsePoints`` or :class:`ColmapPoints`).
+    ``distortion``: V x (k1, k2, k3, k4, p1, p2) (nerfstudio's transforms.json fields); an image with any non-zero
+    term gets an OPENCV camera (FULL_OPENCV when k3 or k4 is set) instead of PINHOLE.
     """
     import pycolmap
 
@@ -399,15 +402,20 @@ def build_reconstruction(
     rec = pycolmap.Reconstruction()
     cam_ids: dict = {}
     view_cam = []
-    for K, (w, h) in zip(Ks, sizes):
+    for v, (K, (w, h)) in enumerate(zip(Ks, sizes)):
         if abs(K[0, 1]) > 1e-12:
             raise ValueError("PINHOLE cameras cannot have skew")
-        key = (int(w), int(h), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+        model, params = "PINHOLE", [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
+        if distortion is not None and any(float(c) != 0.0 for c in distortion[v]):
+            k1, k2, k3, k4, p1, p2 = (float(c) for c in distortion[v])
+            if k3 == 0.0 and k4 == 0.0:
+                model, params = "OPENCV", params + [k1, k2, p1, p2]
+            else:
+                model, params = "FULL_OPENCV", params + [k1, k2, p1, p2, k3, k4, 0.0, 0.0]
+        key = (model, int(w), int(h), *params)
         if key not in cam_ids:
             cam_ids[key] = len(cam_ids) + 1
-            cam = pycolmap.Camera(
-                model="PINHOLE", width=key[0], height=key[1], params=list(key[2:]), camera_id=cam_ids[key]
-            )
+            cam = pycolmap.Camera(model=model, width=int(w), height=int(h), params=params, camera_id=cam_ids[key])
             rec.add_camera_with_trivial_rig(cam)
         view_cam.append(cam_ids[key])
 
@@ -443,10 +451,11 @@ def write_colmap_model(
     sizes: Sequence[Tuple[int, int]],
     w2cs: np.ndarray,
     points: Optional[Any] = None,
+    distortion: Optional[Sequence[Sequence[float]]] = None,
 ):
     """Write cameras/images/points3D.bin (plus pycolmap 4's rigs/frames.bin) into ``model_dir``; see
     :func:`build_reconstruction` for the arguments. Returns the reconstruction."""
-    rec = build_reconstruction(names, Ks, sizes, w2cs, points)
+    rec = build_reconstruction(names, Ks, sizes, w2cs, points, distortion)
     model_dir = Path(model_dir)
     model_dir.mkdir(parents=True, exist_ok=True)
     rec.write(str(model_dir))
