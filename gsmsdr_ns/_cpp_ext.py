@@ -5,7 +5,8 @@ Each extension is one .cpp file registering its ops with TORCH_LIBRARY. It is bu
 torch.utils.cpp_extension.load, like gsplat's CUDA code, into ~/.cache/gsmsdr_ns/torch_extensions/<torch version>/<name>
 (or $TORCH_EXTENSIONS_DIR/<name>), at most once per process; torch's file lock serialises concurrent builds. A
 failed build is not retried in the same process, and `available()` / `error()` never raise, so callers can fall back
-to their PyTorch twin with a clear reason (`choose_backend` does that, warning once).
+to their PyTorch twin with a clear reason (`choose_backend` does that, warning once; `backend_for` also sends
+tensors the C++ kernel does not take to the twin).
 
 Imports only torch and the standard library: `gsmsdr_ns.render` and `gsmsdr_ns.blur` both use it without nerfstudio.
 """
@@ -171,6 +172,30 @@ class CppExtension:
         if self.available():
             return None
         return self._error or f"unknown error while loading the {self.what}"
+
+    def backend_for(
+        self, tensor: torch.Tensor, requested: str, unavailable: str, fallback: str, stacklevel: int = 2
+    ) -> str:
+        """The backend of an op with this extension as its CPU float32 / float64 kernel and a PyTorch twin elsewhere.
+
+        "torch" when asked for, or for tensors the kernel does not take (another device or dtype); else
+        :meth:`choose_backend` (its ``stacklevel`` as seen from the caller of this method).
+
+        Raises:
+            ValueError: ``requested`` is not "auto", "cpp" or "torch", or "cpp" with tensors the kernel does not take.
+            RuntimeError: ``requested == "cpp"`` and the extension cannot be built.
+        """
+        if requested == "torch":
+            return "torch"
+        if requested not in ("auto", "cpp"):
+            raise ValueError(f"backend: expected 'auto', 'cpp' or 'torch', got {requested!r}")
+        if tensor.device.type != "cpu" or tensor.dtype not in (torch.float32, torch.float64):
+            if requested == "cpp":
+                raise ValueError(
+                    f"backend='cpp' needs CPU float32/float64 tensors, got {tensor.dtype} on {tensor.device}"
+                )
+            return "torch"
+        return self.choose_backend(requested, unavailable, fallback, stacklevel + 1)
 
     def choose_backend(self, requested: str, unavailable: str, fallback: str, stacklevel: int = 2) -> str:
         """"cpp" when the extension loads; else "torch", warning once per process why.

@@ -27,7 +27,6 @@ from .kernels import _replicate_pad_adjoint
 __all__ = ["apply_occluding_defocus", "apply_soft_disk_defocus", "DefocusBackend"]
 
 DefocusBackend = Literal["auto", "cpp", "torch"]
-_CPP_DTYPES = (torch.float32, torch.float64)
 
 
 def _check(image: Tensor, radius: Tensor, inverse_depth: Tensor, kernel_size: int, softness: float) -> None:
@@ -52,23 +51,6 @@ def _check(image: Tensor, radius: Tensor, inverse_depth: Tensor, kernel_size: in
             )
         if x.device != image.device:
             raise ValueError(f"image and {name}: expected the same device, got {image.device} and {x.device}")
-
-
-def _resolve_backend(image: Tensor, backend: DefocusBackend) -> str:
-    """"cpp" for CPU float32/float64 tensors when the extension builds, else "torch" (one warning says why)."""
-    if backend == "torch":
-        return "torch"
-    if backend not in ("auto", "cpp"):
-        raise ValueError(f"backend: expected 'auto', 'cpp' or 'torch', got {backend!r}")
-    if image.device.type != "cpu" or image.dtype not in _CPP_DTYPES:
-        if backend == "cpp":
-            raise ValueError(f"backend='cpp' needs CPU float32/float64 tensors, got {image.dtype} on {image.device}")
-        return "torch"
-    from gsmsdr_ns.blur.disk_kernels_cpp import EXTENSION
-
-    return EXTENSION.choose_backend(
-        backend, unavailable="C++ thin-lens defocus op", fallback="the PyTorch loop (slower)", stacklevel=3
-    )
 
 
 class _Tap:
@@ -219,7 +201,12 @@ class _DiskDefocusCpp(torch.autograd.Function):
 
 
 def _apply(image, radius, inverse_depth, kernel_size, softness, occlusion, backend) -> Tensor:
-    if _resolve_backend(image, backend) == "cpp":
+    from gsmsdr_ns.blur.disk_kernels_cpp import EXTENSION
+
+    chosen = EXTENSION.backend_for(
+        image, backend, unavailable="C++ thin-lens defocus op", fallback="the PyTorch loop (slower)"
+    )
+    if chosen == "cpp":
         return _DiskDefocusCpp.apply(image, radius, inverse_depth.detach(), kernel_size, float(softness), occlusion)[0]
     return _DiskDefocusTorch.apply(image, radius, inverse_depth.detach(), kernel_size, float(softness), occlusion)
 

@@ -46,7 +46,6 @@ EXTENSION = CppExtension(
     what="C++ grid-kernel op",
 )
 grid_kernels_cpp_available = EXTENSION.available
-_CPP_DTYPES = (torch.float32, torch.float64)
 
 
 def grid_size(size: Tuple[int, int], factor: int) -> Tuple[int, int]:
@@ -149,15 +148,9 @@ def apply_grid_kernels(
     K = _check(image, grid, factor)
     if factor == 1:
         return apply_pixel_kernels(image, grid)
-    if backend not in ("auto", "cpp", "torch"):
-        raise ValueError(f"backend: expected 'auto', 'cpp' or 'torch', got {backend!r}")
-    use_cpp = backend != "torch" and image.device.type == "cpu" and image.dtype in _CPP_DTYPES
-    if use_cpp:
-        use_cpp = EXTENSION.choose_backend(
-            backend, unavailable="C++ grid-kernel op", fallback="resampling the kernels to every pixel", stacklevel=2
-        ) == "cpp"  # fmt: skip
-    elif backend == "cpp":
-        raise ValueError(f"backend='cpp' needs CPU float32/float64 tensors, got {image.dtype} on {image.device}")
-    if use_cpp:
+    chosen = EXTENSION.backend_for(
+        image, backend, unavailable="C++ grid-kernel op", fallback="resampling the kernels to every pixel"
+    )
+    if chosen == "cpp":
         return _GridKernelsCpp.apply(image, grid, K, int(factor))
     return apply_pixel_kernels(image, upsample_grid(grid, int(factor), image.shape[-2:]))

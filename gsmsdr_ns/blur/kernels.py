@@ -32,7 +32,6 @@ from torch import Tensor, nn
 from torch.autograd.function import once_differentiable
 
 PixelKernelBackend = Literal["auto", "cpp", "torch"]
-_CPP_DTYPES = (torch.float32, torch.float64)
 
 
 def pixel_kernel_size(num_channels: int) -> int:
@@ -74,29 +73,6 @@ def _check_inputs(image: Tensor, weights: Tensor) -> int:
     if weights.device != image.device:
         raise ValueError(f"image and weights: expected the same device, got {image.device} and {weights.device}")
     return K
-
-
-def _resolve_backend(image: Tensor, backend: PixelKernelBackend) -> str:
-    """"cpp" for CPU float32/float64 tensors when the extension builds, else "torch" (one warning says why)."""
-    if backend == "torch":
-        return "torch"
-    if backend not in ("auto", "cpp"):
-        raise ValueError(f"backend: expected 'auto', 'cpp' or 'torch', got {backend!r}")
-    supported = image.device.type == "cpu" and image.dtype in _CPP_DTYPES
-    if not supported:
-        if backend == "cpp":
-            raise ValueError(
-                f"backend='cpp' needs CPU float32/float64 tensors, got {image.dtype} on {image.device}"
-            )
-        return "torch"
-    from gsmsdr_ns.blur.kernels_cpp import EXTENSION
-
-    return EXTENSION.choose_backend(
-        backend,
-        unavailable="C++ pixel-kernel op",
-        fallback="the PyTorch loop (slower on busy CPUs)",
-        stacklevel=3,
-    )
 
 
 def _replicate_pad_adjoint(grad_padded: Tensor, p: int) -> Tensor:
@@ -225,7 +201,12 @@ def apply_pixel_kernels(
             mismatch; the message names expected and actual shapes.
     """
     K = _check_inputs(image, weights)
-    if _resolve_backend(image, backend) == "cpp":
+    from gsmsdr_ns.blur.kernels_cpp import EXTENSION
+
+    chosen = EXTENSION.backend_for(
+        image, backend, unavailable="C++ pixel-kernel op", fallback="the PyTorch loop (slower on busy CPUs)"
+    )
+    if chosen == "cpp":
         return _PixelKernelsCpp.apply(image, weights, K)
     return _PixelKernelsTorch.apply(image, weights, K)
 
