@@ -163,3 +163,17 @@ def cpu_trainer_config(scene: Path, output_dir: Path, max_steps: int):
     model.num_downscales, model.warmup_length = 0, 2
     model.blur_field = BlurFieldConfig(size="lite", kernel_sizes=(3, 5, 9), warmup=0)
     return config
+
+
+def shared_fern() -> Path:
+    """The real LLFF fern photos (``llff-fern``, with ``images_8``, ``images_16`` and ``poses_bounds.npy``):
+    under $GSMSDR_SHARED_DATA, else in ``shared/data/`` of the nearest parent folder of the tests that has them
+    (beside the repository in CI, further up from a git worktree). Fails the test, naming where it looked, when
+    they are missing."""
+    env = os.environ.get("GSMSDR_SHARED_DATA")
+    roots = [Path(env)] if env else [folder / "shared" / "data" for folder in Path(__file__).resolve().parents]
+    for root in roots:
+        if (root / "llff-fern" / "images_16").is_dir():
+            return root / "llff-fern"
+    pytest.fail(f"the fern photos (llff-fern) are missing: looked in {roots[0]} and its parents' shared/data; they "
+                "sit beside the repository in CI, or set GSMSDR_SHARED_DATA")  # fmt: skip

@@ -20,17 +20,9 @@ from gsmsdr_ns.bench.suite_config import SuiteConfigError, find_suite_file, load
 from gsmsdr_ns.io.colmap import read_colmap
 from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.io.images import read_image_float
+from conftest import shared_fern
 
 NUM_PHOTOS = 6
-
-
-def fern_dir() -> Path:
-    """llff-fern in ``shared/data/`` above the repository (beside the main checkout; CI has it)."""
-    for folder in Path(__file__).resolve().parents:
-        candidate = folder / "shared" / "data" / "llff-fern"
-        if (candidate / "images_16").is_dir():
-            return candidate
-    pytest.fail("llff-fern photos not found in shared/data/ above the repository (the CI checkout has them)")
 
 
 def suite_text(methods: str = "[plain, full, full-true, sharp]", steps: int = 20) -> str:
@@ -54,8 +46,8 @@ def photo_set(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("data")
     folder = root / "fern6" / "images_16"
     folder.mkdir(parents=True)
-    for name in sorted(p.name for p in (fern_dir() / "images_16").iterdir())[:NUM_PHOTOS]:
-        shutil.copyfile(fern_dir() / "images_16" / name, folder / name)
+    for name in sorted(p.name for p in (shared_fern() / "images_16").iterdir())[:NUM_PHOTOS]:
+        shutil.copyfile(shared_fern() / "images_16" / name, folder / name)
     return root
 
 
@@ -106,7 +98,7 @@ def test_missing_photo_set_says_where_it_looked(tmp_path: Path, monkeypatch: pyt
     monkeypatch.chdir(tmp_path)
     with pytest.raises(InputError, match=rf"photo set 'no-such-set'.*{tmp_path}/no-such-set/images_16.*{DATA_DIR_ENV}"):
         resolve_photos(RealSceneSpec(dataset="no-such-set"))
-    assert resolve_photos(RealSceneSpec(dataset=str(fern_dir()))) == fern_dir() / "images_16"
+    assert resolve_photos(RealSceneSpec(dataset=str(shared_fern()))) == shared_fern() / "images_16"
 
 
 def test_each_method_gets_its_scene(built) -> None:

@@ -20,17 +20,9 @@ from gsmsdr_ns.degrade.undistort import describe_distortion
 from gsmsdr_ns.io.colmap import read_colmap
 from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.io.images import read_image_float, write_image
+from conftest import shared_fern
 
 K1 = 0.06
-
-
-def fern_dir() -> Path:
-    """llff-fern beside the repository (../shared/data) or in a parent folder of it (a git worktree)."""
-    for folder in Path(__file__).resolve().parents:
-        candidate = folder / "shared" / "data" / "llff-fern"
-        if (candidate / "images_16").is_dir():
-            return candidate
-    pytest.fail("llff-fern photos not found in shared/data/ above the repository (the CI checkout has them)")
 
 
 def sample(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -50,7 +42,7 @@ def pixel_grid(width: int, height: int) -> np.ndarray:
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> dict:
     """6 fern photos (252x189) distorted with k1 = 0.06 and their transforms.json (LLFF poses, OPENCV camera)."""
-    fern = fern_dir()
+    fern = shared_fern()
     root = tmp_path_factory.mktemp("distorted") / "capture"
     (root / "images").mkdir(parents=True)
     poses = np.load(fern / "poses_bounds.npy")[:, :15].reshape(-1, 3, 5)

@@ -3,7 +3,6 @@ on disk; the dataparser estimates a record per training image, so only the degra
 
 from __future__ import annotations
 
-import os
 import shutil
 from pathlib import Path
 
@@ -14,10 +13,8 @@ import torch
 from gsmsdr_ns.blur.profile import training_profiles
 from gsmsdr_ns.degrade.kernels import convolve_psf, disk_blur, motion_kernel_from_trajectory
 from gsmsdr_ns.io.images import read_image, write_image
+from conftest import shared_fern
 
-# The shared real data sits beside the repository (CI); GSMSDR_SHARED_DATA points elsewhere (e.g. from a worktree).
-SHARED_DATA = Path(os.environ.get("GSMSDR_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
-FERN = SHARED_DATA / "llff-fern"
 MOTION = ("image003.png", "image010.png", "image013.png")
 DEFOCUS = ("image005.png", "image017.png")
 
@@ -34,11 +31,10 @@ def _blurred(path: Path, effect: str) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def fern_with_blurred_photos(tmp_path_factory) -> Path:
-    if not (FERN / "images_8").is_dir():
-        pytest.fail(f"the real photo set is missing: {FERN} (shared/data/llff-fern must sit beside the repository, or set GSMSDR_SHARED_DATA)")
+    fern = shared_fern()
     scene = tmp_path_factory.mktemp("fern") / "scene"
-    shutil.copytree(FERN / "images_8", scene / "images")
-    shutil.copy(FERN / "poses_bounds.npy", scene / "poses_bounds.npy")
+    shutil.copytree(fern / "images_8", scene / "images")
+    shutil.copy(fern / "poses_bounds.npy", scene / "poses_bounds.npy")
     for name in MOTION:
         write_image(scene / "images" / name, _blurred(scene / "images" / name, "motion"))
     for name in DEFOCUS:

@@ -18,10 +18,9 @@ from gsmsdr_ns.io.images import list_images, read_image, write_image
 from gsmsdr_ns.data.layout import detect_layout
 from gsmsdr_ns.process import ProcessConfig, RegistrationError, choose_matching, process_photos
 from gsmsdr_ns.process.cli import parse
+from conftest import shared_fern
 
-# The shared real data sits beside the repository (CI); GSMSDR_SHARED_DATA points elsewhere (e.g. from a worktree).
-SHARED_DATA = Path(os.environ.get("GSMSDR_SHARED_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"))
-FERN = SHARED_DATA / "llff-fern"
+FERN = shared_fern()
 FERN_IMAGES = FERN / "images_8"
 
 # The LLFF rotation columns are the camera's (down, right, backwards) axes; OpenCV / COLMAP's are (right, down,
