@@ -188,10 +188,11 @@ def format_markdown(
         lines.append("")
         lines.append("raster: `_rasterize` (activation, projection, SH, tiles, pixel kernel); blur field: kernel and "
                      "mask prediction (MAAN, MCA, HPKO heads); kernels: kernel application (`BlurField.blur`), "
-                     "the thin lens (one fused op) and the resolution-loss model; densify: the strategy's pre/post-backward "
-                     "hooks; data: `next_train`; other: the rest of the step (mask blend, losses and their backward, "
-                     "composite, optimizer and scheduler steps, callbacks). Backward time is attributed by gradient-hook event times "
-                     "at component boundaries (see `gsmsdr_ns/bench/timing.py`).")  # fmt: skip
+                     "the thin lens (one fused op) and the resolution-loss model; densify: the strategy's "
+                     "pre/post-backward hooks; data: `next_train`; other: the rest of the step (mask blend, losses "
+                     "and their backward, composite, optimizer and scheduler steps, callbacks). Backward time is "
+                     "attributed by gradient-hook event times at component boundaries (see "
+                     "`gsmsdr_ns/bench/timing.py`).")  # fmt: skip
         lines.append("")
 
         gap_rows = []
