@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import statistics
 import subprocess
 import sys
@@ -26,6 +25,8 @@ import time
 from typing import Callable, Dict, List, Sequence, Tuple
 
 import torch
+
+from gsmsdr_ns.bench.timing import PeakMemory, proc_status_kib
 
 IMPLS = ("ours", "torch", "unfold")
 """ours: apply_pixel_kernels (backend auto: C++ on CPU); torch: its PyTorch twin; unfold: the BAGS version."""
@@ -83,14 +84,6 @@ def time_impls(
     }
 
 
-def _proc_status_kib(field: str) -> int:
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith(field + ":"):
-                return int(line.split()[1])
-    raise RuntimeError(f"{field} not found in /proc/self/status")
-
-
 def _peak_memory_child(impl: str, K: int, height: int, width: int, channels: int, batch: int) -> Dict:
     """Runs in the fresh child: extra peak resident memory (bytes) of one forward + backward."""
     fn = _impl(impl)
@@ -98,19 +91,12 @@ def _peak_memory_child(impl: str, K: int, height: int, width: int, channels: int
     _forward_backward(fn, *tiny)  # load the extension, start the thread pool, fault the code pages in
     del tiny
     image, weights, grad = make_inputs(K, height, width, channels, batch)
-    rss_before = _proc_status_kib("VmRSS")
-    try:
-        with open("/proc/self/clear_refs", "w") as fh:
-            fh.write("5")  # reset VmHWM to the current RSS
-        method = "VmHWM after clear_refs"
-    except OSError:
-        method = "ru_maxrss"
+    rss_before = proc_status_kib("VmRSS")
+    peak = PeakMemory()
+    peak.reset()  # VmHWM back to the current RSS where /proc allows it
     _forward_backward(fn, image, weights, grad)
-    if method == "ru_maxrss":
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    else:
-        peak = _proc_status_kib("VmHWM")
-    return dict(impl=impl, K=K, extra_bytes=1024 * (peak - rss_before), method=method)
+    method = "VmHWM after clear_refs" if peak.span_reset else "ru_maxrss"
+    return dict(impl=impl, K=K, extra_bytes=round(2**20 * peak.peak_rss_mb()) - 1024 * rss_before, method=method)
 
 
 def measure_peak_memory(

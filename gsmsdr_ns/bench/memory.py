@@ -101,14 +101,6 @@ def describe_field(overrides: Mapping[str, Any], field: bool = True) -> str:
 # -- the child process --------------------------------------------------------------------------------------------
 
 
-def _proc_status_kib(name: str) -> int:
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith(name + ":"):
-                return int(line.split()[1])
-    raise RuntimeError(f"{name} not found in /proc/self/status")
-
-
 def _build(spec: Mapping[str, Any]):
     """(field or None, lens, scale) for the child's spec; the lens's window is the full K at any image size."""
     import math
@@ -171,7 +163,9 @@ def run_child(spec: Mapping[str, Any]) -> Dict[str, Any]:
     if limit > 0:
         _, hard = resource.getrlimit(resource.RLIMIT_AS)
         resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
-    import torch
+    import torch  # after the limit: importing torch counts towards it
+
+    from gsmsdr_ns.bench.timing import PeakMemory, proc_status_kib
 
     if spec.get("threads"):
         torch.set_num_threads(int(spec["threads"]))
@@ -185,18 +179,14 @@ def run_child(spec: Mapping[str, Any]) -> Dict[str, Any]:
         for p in field_params + list(lens.parameters()):
             p.grad = None
         render, depth, grad = _inputs(int(spec["width"]), int(spec["height"]), int(spec.get("seed", 0)))
-        rss_before, vm_before = _proc_status_kib("VmRSS"), _proc_status_kib("VmSize")  # VmSize counts to the limit
-        try:
-            with open("/proc/self/clear_refs", "w") as fh:
-                fh.write("5")  # reset VmHWM to the current RSS
-            method = "VmHWM after clear_refs"
-        except OSError:
-            method = "ru_maxrss"
+        rss_before, vm_before = proc_status_kib("VmRSS"), proc_status_kib("VmSize")  # VmSize counts to the limit
+        peak = PeakMemory()
+        peak.reset()  # VmHWM back to the current RSS where /proc allows it
         forward_s, backward_s = _step(field, lens, scale, spec["lens"], K, render, depth, grad)
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss if method == "ru_maxrss" else _proc_status_kib(
-            "VmHWM")  # fmt: skip
-        result.update(extra_peak_mb=(peak - rss_before) / 1024.0, forward_s=forward_s, backward_s=backward_s,
-                      setup_rss_mb=rss_before / 1024.0, setup_vm_mb=vm_before / 1024.0, method=method)  # fmt: skip
+        method = "VmHWM after clear_refs" if peak.span_reset else "ru_maxrss"
+        result.update(extra_peak_mb=peak.peak_rss_mb() - rss_before / 1024.0, forward_s=forward_s,
+                      backward_s=backward_s, setup_rss_mb=rss_before / 1024.0, setup_vm_mb=vm_before / 1024.0,
+                      method=method)  # fmt: skip
     except (RuntimeError, MemoryError) as exc:
         if not any(marker in f"{type(exc).__name__}: {exc}" for marker in _OOM_MARKERS):
             raise

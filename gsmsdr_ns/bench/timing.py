@@ -269,6 +269,16 @@ class TimingRecorder:
 # -- peak memory -------------------------------------------------------------------------------------------------
 
 
+def proc_status_kib(field: str) -> int:
+    """A memory field of ``/proc/self/status`` in KiB (``VmRSS``, ``VmHWM``, ``VmSize``, ...); OSError without
+    /proc, RuntimeError when the field is missing."""
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith(field + ":"):
+                return int(line.split()[1])
+    raise RuntimeError(f"{field} not found in /proc/self/status")
+
+
 class PeakMemory:
     """Peak resident memory of this process over a span (and peak CUDA memory allocated by torch).
 
@@ -294,13 +304,9 @@ class PeakMemory:
     @staticmethod
     def _vmhwm_mb() -> Optional[float]:
         try:
-            with open("/proc/self/status") as f:
-                for line in f:
-                    if line.startswith("VmHWM:"):
-                        return int(line.split()[1]) / 1024.0
-        except OSError:
+            return proc_status_kib("VmHWM") / 1024.0
+        except (OSError, RuntimeError):
             return None
-        return None
 
     def peak_rss_mb(self) -> float:
         value = self._vmhwm_mb() if self.span_reset else None
@@ -316,4 +322,4 @@ class PeakMemory:
         return torch.cuda.max_memory_allocated() / 2**20
 
 
-__all__ = ["CATEGORIES", "MEASURED", "PeakMemory", "TimingRecorder"]
+__all__ = ["CATEGORIES", "MEASURED", "PeakMemory", "TimingRecorder", "proc_status_kib"]
