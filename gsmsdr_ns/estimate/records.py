@@ -21,6 +21,7 @@ from typing import Any, Dict, List, Optional, Sequence
 
 from .. import __version__
 from ..data.degradation import load_degradation_json
+from ..data.degradation_schema import check_entry
 from ..io.atomic import write_json_atomic
 from ..io.errors import InputError
 from ..io.images import list_images, read_image
@@ -158,7 +159,8 @@ def estimate_scene_records(
     For a dataparser whose scene has no degradation records: pass each entry to
     ``gsmsdr_ns.data.degradation.record_from_entry``. The result is cached in scene_dir/degradation.estimated.json
     (written atomically; reused while the image files - names, sizes, modification times - and the config are
-    unchanged; a cache that cannot be written, e.g. a read-only scene, is skipped).
+    unchanged; a cache that cannot be written, e.g. a read-only scene, is skipped). Reused entries are checked
+    against the degradation.json schema (the file is user-editable): InputError naming the cache, image and field.
     """
     cfg = config or EstimateConfig()
     scene_dir = Path(scene_dir)
@@ -171,10 +173,15 @@ def estimate_scene_records(
     if cache and cache_path.is_file():
         try:
             doc = json.loads(cache_path.read_text(encoding="utf8"))
-            if isinstance(doc, dict) and doc.get("cache_key") == key:
-                return doc["images"]
+            reuse = isinstance(doc, dict) and doc.get("cache_key") == key
+            entries = doc["images"] if reuse else None
         except (OSError, ValueError, KeyError):
-            pass  # a stale or broken cache is recomputed
+            entries = None  # a stale or broken cache is recomputed
+        if entries is not None:
+            fix = f"Fix the entry, or delete '{cache_path}' to estimate again."
+            for name, entry in entries.items():  # the cache may have been edited by hand
+                check_entry(cache_path, name, entry, fix)
+            return entries
     entries = estimate_entries(folder, cfg, names)
     if cache:
         doc = {"version": FORMAT_VERSION, "generator": GENERATOR, "source": str(folder), "cache_key": key,

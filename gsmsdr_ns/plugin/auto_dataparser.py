@@ -31,7 +31,6 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataPars
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gsmsdr_ns.data.degradation import record_from_entry, unknown_record
-from gsmsdr_ns.data.degradation_schema import check_entry
 from gsmsdr_ns.data.layout import LayoutChoice, detect_layout
 from gsmsdr_ns.data.transforms import check_transforms_json, transforms_file
 from gsmsdr_ns.plugin.dataparser import GSMSDRDataParserConfig, check_image_files
@@ -107,7 +106,7 @@ def estimated_records(image_filenames: List[Path], records: List[Dict[str, Any]]
     """``records`` with every unknown one (``degraded`` None) replaced by the estimate of its image.
 
     The estimate judges each photo against the others in its folder (``estimate_scene_records``, cached beside the
-    folder; every cached entry is checked against the degradation.json schema); images it leaves undecided stay
+    folder; a reused cache is checked against the degradation.json schema); images it leaves undecided stay
     unknown. Logs one line with the counts per label.
     """
     from gsmsdr_ns.estimate.records import CACHE_FILE, estimate_scene_records
@@ -118,9 +117,6 @@ def estimated_records(image_filenames: List[Path], records: List[Dict[str, Any]]
         return records
     folder = folders.pop()
     entries = estimate_scene_records(folder.parent, folder.name)
-    cache = folder.parent / CACHE_FILE
-    for name, entry in entries.items():  # the cache may have been edited by hand
-        check_entry(cache, name, entry, f"Fix the entry, or delete '{cache}' to estimate again.")
     estimated, counts = [], Counter()
     for path, record in zip(image_filenames, records):
         entry = entries.get(Path(path).name)
