@@ -32,6 +32,7 @@ steps: [20]
 eval_every: 10
 schedule: {num_downscales: 0}
 threads: 1
+align_poses: true
 """
 
 RESUME_STEPS = 20
@@ -303,6 +304,8 @@ def test_suite_outputs_parse(interrupted_suite) -> None:
                        "t_densification", "t_data", "t_other", "peak_rss_mb", "num_gaussians"):  # fmt: skip
             assert float(r[column]) >= 0, (column, r)
         assert 5 < float(r["psnr"]) < 60 and 0 < float(r["ssim"]) <= 1
+        # test-pose alignment keeps the given pose unless it fits the photo better
+        assert float(r["psnr_aligned"]) >= float(r["psnr"]) - 0.01 and float(r["pose_correction_deg"]) >= 0
         parts = sum(float(r[f"t_{c}"]) for c in ("rasterization", "blur_field", "kernels", "densification", "data",
                                                  "other"))  # fmt: skip
         assert parts == pytest.approx(float(r["train_seconds"]), rel=1e-3, abs=0.01)
@@ -314,7 +317,8 @@ def test_suite_outputs_parse(interrupted_suite) -> None:
     md = (out / "results.md").read_text(encoding="utf8")
     assert md.startswith("# Benchmark suite `tiny`")
     for text in ("- machine:", "- command: `gsmsdr-bench suite", "### motion", "| method | PSNR | SSIM | LPIPS",
-                 "| GS-MSDR (full) |", "## Time breakdown", "## Gaps", "PSNR: sharp - method"):  # fmt: skip
+                 "| PSNR aligned | SSIM aligned | pose corr. ° |", "- aligned: the same metrics", "| GS-MSDR (full) |",
+                 "## Time breakdown", "## Gaps", "PSNR: sharp - method", "PSNR aligned: method - plain"):  # fmt: skip
         assert text in md, text
     table = [line for line in md.splitlines() if line.startswith("| plain (3DGS) |")][0]
     assert f"{float(plain['psnr']):.2f}" in table

@@ -13,13 +13,16 @@ against its sharp ground truth, both composited on the render's background, RGB 
   images, only when torchvision's AlexNet weights are already in the torch hub cache (nothing is downloaded),
   else NaN;
 
-each then averaged over the test views. (The plugin model's own eval metrics, used by ns-eval, come from
+each then averaged over the test views. With a :class:`~gsmsdr_ns.plugin.pose_alignment.PoseAlignmentConfig`, each
+view is also rendered at its aligned pose (the scene frozen, the test camera's pose optimised on the photometric loss
+against its ground truth, :func:`~gsmsdr_ns.plugin.pose_alignment.align_camera`) and the same metrics are reported
+with the suffix ``_aligned``, plus ``pose_correction_deg``, the mean rotation of the corrections. (The plugin model's own eval metrics, used by ns-eval, come from
 splatfacto's torchmetrics PSNR / SSIM; the bench keeps scikit-image's SSIM so its tables stay comparable.)
 """
 
 from __future__ import annotations
 
-from typing import Any, Dict, Optional
+from typing import Any, Dict, List, Optional
 
 
 def make_lpips(device) -> Optional[Any]:
@@ -33,47 +36,72 @@ def make_lpips(device) -> Optional[Any]:
     return LearnedPerceptualImagePatchSimilarity(normalize=True).to(device)
 
 
-def evaluate_test_views(run, lpips=None) -> Dict[str, float]:
+def evaluate_test_views(run, lpips=None, align=None) -> Dict[str, float]:
     """Mean PSNR / SSIM / LPIPS (see the module docstring) of the test views of ``run`` (an
-    :class:`gsmsdr_ns.bench.training.InProcessRun`), and ``num_views``.
+    :class:`gsmsdr_ns.bench.training.InProcessRun`), and ``num_views``; with ``align`` (a
+    :class:`~gsmsdr_ns.plugin.pose_alignment.PoseAlignmentConfig`) also the metrics at the aligned test poses.
 
-    Renders without gradients and with the random state restored, in eval mode, then back to train mode: training
-    continues exactly as without the evaluation.
+    Renders with the random state restored, in eval mode, then back to train mode: training continues exactly as
+    without the evaluation.
     """
     import numpy as np
     import torch
-    from skimage.metrics import structural_similarity
+
+    from gsmsdr_ns.plugin.pose_alignment import align_camera, camera_with_pose, corrected_pose, frozen_for_alignment
 
     pipeline, model = run.pipeline, run.model
     devices = [torch.cuda.current_device()] if torch.cuda.is_available() else []
-    psnrs, ssims, lpipss = [], [], []
+    given: List[Dict[str, float]] = []
+    aligned: List[Dict[str, float]] = []
+    corrections: List[float] = []
     pipeline.eval()
     try:
-        with torch.random.fork_rng(devices=devices), torch.no_grad():
+        with torch.random.fork_rng(devices=devices):
             for camera, batch in pipeline.datamanager.fixed_indices_eval_dataloader:
-                outputs = model.get_outputs_for_camera(camera)
+                with torch.no_grad():
+                    outputs = model.get_outputs_for_camera(camera)
                 gt = model.composite_with_background(model.get_gt_img(batch["image"]), outputs["background"])
                 gt = gt[..., :3].clamp(0.0, 1.0)
-                pred = outputs["rgb"][..., :3].clamp(0.0, 1.0)
-                mse = torch.mean((pred.double() - gt.double()) ** 2).clamp_min(1e-12)
-                psnrs.append(float(-10.0 * torch.log10(mse)))
-                g, p = gt.double().cpu().numpy(), pred.double().cpu().numpy()
-                ssims.append(float(structural_similarity(
-                    g, p, data_range=1.0, channel_axis=2, gaussian_weights=True, sigma=1.5,
-                    use_sample_covariance=False)))  # fmt: skip
-                if lpips is not None:
-                    to_nchw = lambda x: x.permute(2, 0, 1)[None].float().to(model.device)  # noqa: E731
-                    lpipss.append(float(lpips(to_nchw(pred), to_nchw(gt))))
+                given.append(_image_metrics(outputs["rgb"], gt, lpips, model.device))
+                if align is None:
+                    continue
+                camera = camera.to(model.device)
+                with frozen_for_alignment(model):
+                    correction = align_camera(model, camera, gt, align)
+                    pose = corrected_pose(camera.camera_to_worlds.reshape(3, 4).to(gt), correction.rotation,
+                                          correction.translation)  # fmt: skip
+                    with torch.no_grad():
+                        moved = model.get_outputs_for_camera(camera_with_pose(camera, pose))
+                aligned.append(_image_metrics(moved["rgb"], gt, lpips, model.device))
+                corrections.append(correction.rotation_degrees)
     finally:
         pipeline.train()
-    if not psnrs:
+    if not given:
         raise RuntimeError("the scene has no test views to evaluate")
-    return {
-        "psnr": float(np.mean(psnrs)),
-        "ssim": float(np.mean(ssims)),
-        "lpips": float(np.mean(lpipss)) if lpipss else float("nan"),
-        "num_views": len(psnrs),
-    }
+    out = {name: float(np.mean([m[name] for m in given])) for name in ("psnr", "ssim", "lpips")}
+    out["num_views"] = len(given)
+    if align is not None:
+        out.update({f"{name}_aligned": float(np.mean([m[name] for m in aligned])) for name in ("psnr", "ssim", "lpips")})
+        out["pose_correction_deg"] = float(np.mean(corrections))
+    return out
+
+
+def _image_metrics(rgb, gt, lpips, device) -> Dict[str, float]:
+    """PSNR / SSIM / LPIPS (NaN without ``lpips``) of one render against its ground truth, both [H, W, 3]."""
+    import torch
+    from skimage.metrics import structural_similarity
+
+    pred = rgb[..., :3].detach().clamp(0.0, 1.0)
+    mse = torch.mean((pred.double() - gt.double()) ** 2).clamp_min(1e-12)
+    g, p = gt.double().cpu().numpy(), pred.double().cpu().numpy()
+    ssim = structural_similarity(g, p, data_range=1.0, channel_axis=2, gaussian_weights=True, sigma=1.5,
+                                 use_sample_covariance=False)  # fmt: skip
+    value = float("nan")
+    if lpips is not None:
+        to_nchw = lambda x: x.permute(2, 0, 1)[None].float().to(device)  # noqa: E731
+        with torch.no_grad():
+            value = float(lpips(to_nchw(pred), to_nchw(gt)))
+    return {"psnr": float(-10.0 * torch.log10(mse)), "ssim": float(ssim), "lpips": value}
 
 
 def train_view_psnr(run) -> float:

@@ -19,7 +19,8 @@ from gsmsdr_ns.bench.timing import CATEGORIES
 
 CSV_FIELDS = ("suite", "scene", "method", "steps", "seed", "psnr", "ssim", "lpips", "train_seconds", "step_ms",
               *(f"t_{c}" for c in CATEGORIES), "peak_rss_mb", "peak_cuda_mb", "num_gaussians", "eval_seconds",
-              "setup_seconds", "device", "torch_threads")  # fmt: skip
+              "setup_seconds", "device", "torch_threads", "psnr_aligned", "ssim_aligned",
+              "pose_correction_deg")  # fmt: skip
 
 
 def _num(value: Any, digits: int) -> str:
@@ -41,7 +42,9 @@ def write_csv(records: Sequence[Mapping[str, Any]], path: Path) -> None:
                          _num(r["ssim"], 5), _num(r["lpips"], 5), _num(r["train_seconds"], 2), _num(r["step_ms"], 2),
                          *(_num(b.get(c, float("nan")), 3) for c in CATEGORIES), _num(r["peak_rss_mb"], 1),
                          _num(r["peak_cuda_mb"], 1), r["num_gaussians"], _num(r["eval_seconds"], 2),
-                         _num(r["setup_seconds"], 2), m.get("device", ""), m.get("torch_threads", "")])  # fmt: skip
+                         _num(r["setup_seconds"], 2), m.get("device", ""), m.get("torch_threads", ""),
+                         _num(r.get("psnr_aligned"), 4), _num(r.get("ssim_aligned"), 5),
+                         _num(r.get("pose_correction_deg"), 3)])  # fmt: skip
     write_text_atomic(path, buffer.getvalue())
 
 
@@ -59,7 +62,8 @@ def aggregate(records: Sequence[Mapping[str, Any]]) -> Dict[Tuple[int, str, str]
     for k, rs in groups.items():
         row: Dict[str, Any] = {"seeds": len(rs)}
         for name in ("psnr", "ssim", "lpips", "train_seconds", "step_ms", "peak_rss_mb", "peak_cuda_mb",
-                     "num_gaussians", "eval_seconds"):  # fmt: skip
+                     "num_gaussians", "eval_seconds", "psnr_aligned", "ssim_aligned", "lpips_aligned",
+                     "pose_correction_deg"):  # fmt: skip
             row[name] = _mean([r.get(name, float("nan")) for r in rs])
         row["breakdown"] = {c: _mean([r.get("breakdown", {}).get(c, float("nan")) for r in rs]) for c in CATEGORIES}
         split = [r.get("breakdown_split") for r in rs if r.get("breakdown_split")]
@@ -107,6 +111,11 @@ def format_markdown(
     lines.append("- metrics on the held-out sharp test views (sharp renders vs sharp ground truth): PSNR; SSIM from "
                  "scikit-image (Gaussian window, sigma 1.5); LPIPS (AlexNet) only when its weights are cached, "
                  "else `-`")  # fmt: skip
+    if suite.align_poses:
+        lines.append("- aligned: the same metrics at the end of training after test-pose alignment (scene frozen, each "
+                     "test camera's pose optimised on the photometric loss against its sharp photo, "
+                     "`gsmsdr_ns/plugin/pose_alignment.py`; a pose is kept when alignment does not lower the loss); "
+                     "pose corr.: mean rotation of the corrections in degrees")  # fmt: skip
     lines.append("- train s: training wall time without evaluation and set-up; ms/step = train s / steps; peak mem: "
                  "peak resident memory of the process during the run (includes the Python/torch baseline)"
                  + ("; peak CUDA: torch.cuda.max_memory_allocated" if machine.get("device") == "cuda" else "")
@@ -126,14 +135,19 @@ def format_markdown(
                 continue
             lines.append(f"### {scene.name}")
             lines.append("")
-            head = ["method", "PSNR", "SSIM", "LPIPS", "train s", "ms/step", "peak mem MB"]
+            show_aligned = any(math.isfinite(r["psnr_aligned"]) for _, r in rows)
+            head = ["method", "PSNR", "SSIM", "LPIPS"]
+            head += ["PSNR aligned", "SSIM aligned", "pose corr. °"] if show_aligned else []
+            head += ["train s", "ms/step", "peak mem MB"]
             head += ["peak CUDA MB"] if show_cuda else []
             head += ["Gaussians"] + (["seeds"] if multi_seed else [])
             lines.append("| " + " | ".join(head) + " |")
             lines.append("| --- | " + " | ".join("---:" for _ in head[1:]) + " |")
             for m, r in rows:
-                cells = [METHODS[m].label, _f(r["psnr"]), _f(r["ssim"], 4), _f(r["lpips"], 4),
-                         _f(r["train_seconds"], 0), _f(r["step_ms"], 0), _f(r["peak_rss_mb"], 0)]  # fmt: skip
+                cells = [METHODS[m].label, _f(r["psnr"]), _f(r["ssim"], 4), _f(r["lpips"], 4)]
+                if show_aligned:
+                    cells += [_f(r["psnr_aligned"]), _f(r["ssim_aligned"], 4), _f(r["pose_correction_deg"], 2)]
+                cells += [_f(r["train_seconds"], 0), _f(r["step_ms"], 0), _f(r["peak_rss_mb"], 0)]
                 cells += [_f(r["peak_cuda_mb"], 0)] if show_cuda else []
                 cells += [_f(r["num_gaussians"], 0)] + ([str(r["seeds"])] if multi_seed else [])
                 lines.append("| " + " | ".join(cells) + " |")
@@ -196,26 +210,32 @@ def format_markdown(
         lines.append("")
 
         gap_rows = []
+        aligned_gaps = any(math.isfinite(r["psnr_aligned"]) for (st, _, _), r in agg.items() if st == steps)
         for scene in suite.scenes:
             plain, sharp = agg.get((steps, scene.name, "plain")), agg.get((steps, scene.name, "sharp"))
             if plain and sharp:
-                gap_rows.append(f"| {scene.name} | {METHODS['plain'].label} | 0.00 | 0.0000 | "
-                                f"{_sign(sharp['psnr'] - plain['psnr'])} |")  # fmt: skip
+                cells = ["0.00", "0.0000", _sign(sharp["psnr"] - plain["psnr"])]
+                cells += ["0.00"] if aligned_gaps else []
+                gap_rows.append(f"| {scene.name} | {METHODS['plain'].label} | " + " | ".join(cells) + " |")
             for m in suite.methods:
                 if m in ("plain", "sharp"):
                     continue
                 r = agg.get((steps, scene.name, m))
                 if r is None or (plain is None and sharp is None):
                     continue
-                d_plain = r["psnr"] - plain["psnr"] if plain else float("nan")
-                d_sharp = sharp["psnr"] - r["psnr"] if sharp else float("nan")
-                s_plain = r["ssim"] - plain["ssim"] if plain else float("nan")
-                gap_rows.append(f"| {scene.name} | {METHODS[m].label} | {_sign(d_plain)} | {_sign(s_plain, 4)} "
-                                f"| {_sign(d_sharp)} |")  # fmt: skip
+                nan = float("nan")
+                cells = [_sign(r["psnr"] - plain["psnr"] if plain else nan),
+                         _sign(r["ssim"] - plain["ssim"] if plain else nan, 4),
+                         _sign(sharp["psnr"] - r["psnr"] if sharp else nan)]  # fmt: skip
+                if aligned_gaps:
+                    cells.append(_sign(r["psnr_aligned"] - plain["psnr_aligned"] if plain else nan))
+                gap_rows.append(f"| {scene.name} | {METHODS[m].label} | " + " | ".join(cells) + " |")
         if gap_rows:
             lines += [f"## Gaps{suffix} (test PSNR in dB, SSIM)", ""]
-            lines.append("| scene | method | PSNR: method - plain | SSIM: method - plain | PSNR: sharp - method |")
-            lines.append("| --- | --- | ---: | ---: | ---: |")
+            extra = " PSNR aligned: method - plain |" if aligned_gaps else ""
+            lines.append("| scene | method | PSNR: method - plain | SSIM: method - plain | PSNR: sharp - method |"
+                         + extra)  # fmt: skip
+            lines.append("| --- | --- | ---: | ---: | ---: |" + (" ---: |" if aligned_gaps else ""))
             lines += gap_rows
             lines.append("")
 

@@ -40,6 +40,10 @@ RECORD_VERSION = 1
 """Bumped when a record's meaning changes: older records are then rerun instead of reused."""
 
 
+ALIGNED_KEYS = ("psnr_aligned", "ssim_aligned", "lpips_aligned", "pose_correction_deg")
+"""Record fields of a suite with ``align_poses`` (the final evaluation after test-pose alignment)."""
+
+
 def preset_fingerprint(method: MethodSpec) -> str:
     """The resolved model and optimizer settings of ``method`` (its preset with its changes applied), so a record
     made before a preset default changed is rerun. Paths are left out, and so are the blur field's settings for
@@ -67,6 +71,8 @@ def fingerprint(suite: Suite, key: RunKey) -> str:
         "eval_steps": suite.eval_steps(key.steps),
         "lpips": suite.lpips,
     }
+    if suite.align_poses:  # only then, so records of suites without alignment keep their fingerprint
+        payload["align_poses"] = True
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -86,6 +92,7 @@ def train_and_record(
 
     from gsmsdr_ns.bench.timing import PeakMemory, TimingRecorder
     from gsmsdr_ns.bench.training import InProcessRun
+    from gsmsdr_ns.plugin.pose_alignment import PoseAlignmentConfig
 
     method = METHODS[key.method]
     scene = suite.scene(key.scene)
@@ -105,6 +112,7 @@ def train_and_record(
     eval_seconds = 0.0
     try:
         eval_steps = suite.eval_steps(key.steps)
+        alignment = PoseAlignmentConfig() if suite.align_poses else None
         for target in eval_steps:
             while run.step < target:
                 with recorder.measure():
@@ -112,7 +120,7 @@ def train_and_record(
                 if on_step is not None:
                     on_step(1)
             t0 = time.perf_counter()
-            metrics = evaluate_test_views(run, lpips)
+            metrics = evaluate_test_views(run, lpips, align=alignment if target == eval_steps[-1] else None)
             eval_seconds += time.perf_counter() - t0
             point = {"step": run.step, "seconds": recorder.wall, **metrics,
                      "num_gaussians": int(run.model.num_points), "breakdown": recorder.totals()}  # fmt: skip
@@ -139,6 +147,7 @@ def train_and_record(
             "eval_seconds": eval_seconds,
             "num_gaussians": final["num_gaussians"],
             "num_test_views": final["num_views"],
+            **{k: final[k] for k in ALIGNED_KEYS if k in final},
             "peak_rss_mb": memory.peak_rss_mb(),
             "peak_rss_span": memory.span_reset,
             "peak_cuda_mb": memory.peak_cuda_mb(),

@@ -117,6 +117,9 @@ class Suite:
     """torch intra-op threads (0: torch's default)."""
     lpips: bool = True
     """Compute LPIPS when torchvision's AlexNet weights are in the torch hub cache."""
+    align_poses: bool = False
+    """At the final evaluation, also report the metrics after test-pose alignment (real captures, whose test poses
+    come from the degraded photos' structure-from-motion)."""
     description: str = ""
     """Free text for the results header."""
     scene_root: Optional[Path] = None
@@ -156,7 +159,7 @@ def schedule_settings(schedule: TrainingSchedule) -> Dict[str, Any]:
 
 
 _SUITE_KEYS = {"name", "description", "scenes", "scene_defaults", "methods", "steps", "seeds", "eval_every",
-               "schedule", "threads", "lpips", "scene_root"}  # fmt: skip
+               "schedule", "threads", "lpips", "align_poses", "scene_root"}  # fmt: skip
 _SCENE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
 
 
@@ -328,6 +331,9 @@ def load_suite(path: str | Path) -> Suite:
     lpips = values.get("lpips", True)
     if not isinstance(lpips, bool):
         raise _fail(source, "lpips", f"must be true or false, got {lpips!r}")
+    align_poses = values.get("align_poses", False)
+    if not isinstance(align_poses, bool):
+        raise _fail(source, "align_poses", f"must be true or false, got {align_poses!r}")
     schedule = _check_schedule(values.get("schedule") or {}, source)
 
     scene_root = values.get("scene_root")
@@ -343,6 +349,7 @@ def load_suite(path: str | Path) -> Suite:
         schedule=schedule,
         threads=threads,
         lpips=lpips,
+        align_poses=align_poses,
         description=str(values.get("description", "")).strip(),
         scene_root=None if scene_root is None else Path(os.path.expanduser(scene_root)),
         source=source,

@@ -64,7 +64,8 @@ def corrected_pose(camera_to_world: Tensor, rotation: Tensor, translation: Tenso
     return torch.cat([delta @ camera_to_world[:, :3], camera_to_world[:, 3:] + translation[:, None]], dim=1)
 
 
-def _camera_with_pose(camera: Cameras, camera_to_world: Tensor, downscale: int = 1) -> Cameras:
+def camera_with_pose(camera: Cameras, camera_to_world: Tensor, downscale: int = 1) -> Cameras:
+    """A copy of one camera at pose ``camera_to_world`` [3, 4], its output resolution shrunk by ``downscale``."""
     moved = copy.deepcopy(camera)
     moved.camera_to_worlds = camera_to_world.reshape(1, 3, 4)
     if downscale > 1:
@@ -102,7 +103,7 @@ def frozen_for_alignment(model: torch.nn.Module) -> Iterator[None]:
 
 
 def _render_loss(model, camera: Cameras, camera_to_world: Tensor, image: Tensor, downscale: int) -> Tensor:
-    render = model.get_outputs(_camera_with_pose(camera, camera_to_world, downscale))["rgb"]
+    render = model.get_outputs(camera_with_pose(camera, camera_to_world, downscale))["rgb"]
     target = _shrink(image, tuple(render.shape[:2]))
     return F.mse_loss(render, target)
 
@@ -171,7 +172,7 @@ def evaluate_with_alignment(
                 )
                 with torch.no_grad():
                     aligned, _ = model.get_image_metrics_and_images(
-                        model.get_outputs(_camera_with_pose(camera, pose)), batch
+                        model.get_outputs(camera_with_pose(camera, pose)), batch
                     )
                 row.update({f"{name}_aligned": float(value) for name, value in aligned.items()})
                 row["rotation_deg"] = aligned_pose.rotation_degrees
