@@ -329,6 +329,16 @@ def test_half_size_image_in_a_deblur_scene_is_rejected(deblur, folder, name, spl
     ), str(err.value)
 
 
+def test_a_folder_at_a_small_scale_of_large_cameras_is_one_scale():
+    """1/16 of a 4032x3024 camera is 252x189 exactly: the folder's scale is not rounded (0.062 would expect 250 px)."""
+    from gsmsdr_ns.data.cameras import check_same_scale
+
+    files = [Path(f"image{i:03d}.png") for i in range(4)]
+    check_same_scale(files, np.array([[4032, 3024]] * 4), [(252, 189)] * 4, "'poses_bounds.npy'")
+    with pytest.raises(InputError, match=r"image003\.png' is 126x94 px .* so it should be 252x189 px"):
+        check_same_scale(files, np.array([[4032, 3024]] * 4), [(252, 189)] * 3 + [(126, 94)], "'poses_bounds.npy'")
+
+
 def test_a_whole_folder_at_half_size_still_parses(deblur):
     """images_2/-style copies (every file at the same scale) keep rescaling the intrinsics."""
     for image in (deblur / "images").iterdir():

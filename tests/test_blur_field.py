@@ -266,6 +266,36 @@ def test_shared_dict_hooks():
     assert f.get_loss_dict({}, None) == {}
 
 
+def test_kernel_centroids_measure_the_shift_a_kernel_applies():
+    """A kernel's centre of mass is the shift it applies to an image: blurring a ramp by it moves the ramp by that
+    much (away from the border), and a symmetric kernel has its centre on the pixel."""
+    from gsmsdr_ns.blur.kernels import apply_pixel_kernels, kernel_centroids
+
+    K, H, W = 5, 12, 14
+    g = torch.Generator().manual_seed(0)
+    weights = torch.softmax(torch.randn(2, K * K, H, W, generator=g, dtype=torch.float64), dim=1)
+    centroids = kernel_centroids(weights)
+    assert centroids.shape == (2, 2, H, W)
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    ramp = torch.stack([ys, xs])[None].expand(2, 2, H, W).contiguous()  # channel 0 = row, channel 1 = column
+    moved = apply_pixel_kernels(ramp, weights) - ramp
+    inner = (slice(None), slice(None), slice(K // 2, H - K // 2), slice(K // 2, W - K // 2))
+    torch.testing.assert_close(moved[inner], centroids[inner])
+    symmetric = (weights + weights.flip(1)) / 2  # the window mirrored through its centre
+    assert kernel_centroids(symmetric).abs().max() < 1e-12
+
+
+def test_kernel_centre_regulariser():
+    f = field(kernel_centre_weight=0.5)
+    centroids = torch.zeros(1, 2, 3, 3)
+    centroids[0, 0] = 2.0  # every kernel two rows off its pixel
+    losses = f.get_loss_dict({}, None, centroids)
+    torch.testing.assert_close(losses["blur_kernel_centre"], torch.tensor(2.0))  # 0.5 * 2^2
+    assert field().get_loss_dict({}, None, centroids) == {}  # off by default
+    with pytest.raises(ValueError, match="kernel_centre_weight"):
+        BlurFieldConfig(kernel_centre_weight=-1.0)
+
+
 # ------------------------------------------------------------------------------------------------ pure helpers
 
 

@@ -23,6 +23,7 @@ from torch import Tensor, nn
 
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.grid_kernels import GridKernels, as_dense
+from gsmsdr_ns.blur.kernels import kernel_centroids
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo
 from gsmsdr_ns.blur.maan import host_checked_view_ids
 from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
@@ -62,6 +63,15 @@ class DegradationPlan(NamedTuple):
     def is_plain(self) -> bool:
         """Nothing to simulate: outputs["rgb"] is the sharp render."""
         return self.blur_scale is None and self.resolution_factor <= 1.0
+
+
+def _kernel_centroids(kernels: Union[Tensor, GridKernels]) -> Tensor:
+    """[B, 2, h, w] centres of mass of the field's kernels, on its coarse grid when it predicts one (the dense
+    kernels are that grid resampled bilinearly, and a centre of mass is linear in the weights)."""
+    weights = kernels.weights if isinstance(kernels, GridKernels) else kernels
+    if weights.stride(-1) == 0 and weights.stride(-2) == 0:  # one kernel per image, expanded over the pixels
+        weights = weights[..., :1, :1]
+    return kernel_centroids(weights)
 
 
 class LensThenField(NamedTuple):
@@ -209,9 +219,10 @@ class DegradationModel(nn.Module):
         return groups
 
     def get_loss_dict(self, loss_dict: Dict[str, Tensor], outputs: Dict[str, Any]) -> Dict[str, Tensor]:
-        """Add the blur mask regulariser ``blur_mask_reg`` when the field ran (``outputs["blur_mask"]``)."""
+        """Add the blur field's regularisers when it ran: ``blur_mask_reg`` (``outputs["blur_mask"]``) and
+        ``blur_kernel_centre`` (``outputs["blur_kernel_centroids"]``)."""
         if self.blur_field is not None:
-            self.blur_field.get_loss_dict(loss_dict, outputs.get("blur_mask"))
+            self.blur_field.get_loss_dict(loss_dict, outputs.get("blur_mask"), outputs.get("blur_kernel_centroids"))
         return loss_dict
 
     def get_metrics_dict(self, metrics_dict: Dict[str, Any], outputs: Dict[str, Any]) -> Dict[str, Any]:
@@ -308,6 +319,8 @@ class DegradationModel(nn.Module):
                 blurred = timed("kernels", BlurField.blur, image, stages.kernels, self.blur_field.config.linear_light)
                 image = stages.mask * blurred + (1.0 - stages.mask) * image  # BlurField.degrade
                 outputs["blur_mask"] = _hwc(stages.mask)
+                if self.blur_field.config.kernel_centre_weight > 0:
+                    outputs["blur_kernel_centroids"] = timed("blur_field", _kernel_centroids, stages.kernels)
         if plan.resolution_factor > 1.0:
             assert self.resolution_model is not None
             image = timed("kernels", self.resolution_model, image, [plan.resolution_factor], view_ids)

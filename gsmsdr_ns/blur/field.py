@@ -152,6 +152,10 @@ class BlurFieldConfig:
     kernel application only."""
     mask_reg_weight: float = 0.001
     """Weight of the mask regulariser mean(m) (BAGS: 0.001)."""
+    kernel_centre_weight: float = 0.0
+    """Weight of the kernel-centre regulariser: mean squared distance (pixels) of each kernel's centre of mass from
+    its pixel. A blurred photo's pose (from structure-from-motion on the blurred photos) sits at the centre of its
+    blur; a kernel free to shift lets the sharp scene drift off that pose by a different amount in every view."""
     warmup: int = 250
     """The blur field is skipped for the first ``warmup`` steps (BAGS: 250)."""
     switch_steps: Optional[Tuple[int, ...]] = None
@@ -170,6 +174,8 @@ class BlurFieldConfig:
             raise ValueError("a blur field needs pixel_kernels, view_kernels or both")
         if not self.thin_lens_initial_aperture > 0:
             raise ValueError(f"thin_lens_initial_aperture must be > 0, got {self.thin_lens_initial_aperture}")
+        if not self.kernel_centre_weight >= 0:
+            raise ValueError(f"kernel_centre_weight must be >= 0, got {self.kernel_centre_weight}")
         if not self.kernel_prior_sigma > 0:
             raise ValueError(f"kernel_prior_sigma must be > 0, got {self.kernel_prior_sigma}")
         if int(self.feature_downsample) != self.feature_downsample or self.feature_downsample < 1:
@@ -391,11 +397,20 @@ class BlurField(nn.Module):
         """Mask regulariser ``mask_reg_weight * mean(m)`` (pushes unneeded blending toward the sharp render)."""
         return self.config.mask_reg_weight * mask.mean()
 
-    def get_loss_dict(self, loss_dict: Dict[str, Tensor], mask: Optional[Tensor]) -> Dict[str, Tensor]:
+    def kernel_centre_loss(self, centroids: Tensor) -> Tensor:
+        """Kernel-centre regulariser ``kernel_centre_weight * mean(|c|^2)`` of the kernels' centres of mass
+        (``centroids`` [B, 2, H, W] in pixels, :func:`~gsmsdr_ns.blur.kernels.kernel_centroids`)."""
+        return self.config.kernel_centre_weight * centroids.square().sum(dim=1).mean()
+
+    def get_loss_dict(
+        self, loss_dict: Dict[str, Tensor], mask: Optional[Tensor], centroids: Optional[Tensor] = None
+    ) -> Dict[str, Tensor]:
         """Add ``blur_mask_reg`` to ``loss_dict`` (nothing when the field did not run, mask None, or has no learnt
-        mask: mode view)."""
+        mask: mode view) and, given the kernels' ``centroids``, ``blur_kernel_centre``."""
         if mask is not None and self.config.mask_reg_weight > 0 and self.config.mode != "view":
             loss_dict["blur_mask_reg"] = self.mask_loss(mask)
+        if centroids is not None and self.config.kernel_centre_weight > 0:
+            loss_dict["blur_kernel_centre"] = self.kernel_centre_loss(centroids)
         return loss_dict
 
     def get_param_groups(self, param_groups: Dict[str, List[nn.Parameter]]) -> Dict[str, List[nn.Parameter]]:

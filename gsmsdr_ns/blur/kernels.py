@@ -238,6 +238,23 @@ def apply_image_kernels(
     return F.conv2d(padded, weight, groups=B * C).reshape(B, C, H, W)
 
 
+def kernel_centroids(weights: Tensor) -> Tensor:
+    """Centre of mass of each pixel's kernel, in pixels from the pixel itself (the shift the kernel applies).
+
+    Args:
+        weights: [B, K*K, H, W] kernel weights in the row-major convention above (any grid: per pixel, or the blur
+            field's coarse grid; each kernel is expected to sum to 1, as softmax kernels do).
+    Returns:
+        [B, 2, H, W]: (row, column) offsets, ``sum_k w_k * (i_k - p, j_k - p)``; 0 for a centred (symmetric) kernel.
+    """
+    K = pixel_kernel_size(weights.shape[1])
+    offsets = torch.arange(K, device=weights.device, dtype=weights.dtype) - K // 2
+    taps = weights.reshape(weights.shape[0], K, K, *weights.shape[2:])
+    rows = torch.einsum("bijhw,i->bhw", taps, offsets)
+    cols = torch.einsum("bijhw,j->bhw", taps, offsets)
+    return torch.stack([rows, cols], dim=1)
+
+
 def apply_pixel_kernels_unfold(
     image: Tensor,  # [B, C, H, W]
     weights: Tensor,  # [B, K*K, H, W]

@@ -110,8 +110,12 @@ def check_same_scale(
         return
     model = np.asarray(model_sizes, dtype=np.float64).reshape(-1, 2)
     image = np.asarray(image_sizes, dtype=np.float64).reshape(-1, 2)
-    ratios = [tuple(np.round(r, 3)) for r in image / model]
-    scale = np.asarray(Counter(ratios).most_common(1)[0][0])
+    ratios = image / model  # [N, 2]
+    # the folder's scale: the file ratio that the most files match within rounding (a small scale such as 1/16 of a
+    # 4032 px camera must not be rounded itself: 0.062 instead of 0.0625 is 2 px off)
+    candidates = [np.asarray(r) for r, _ in Counter(map(tuple, np.round(ratios, 6))).most_common(20)]
+    fits = [int(np.all(np.abs(image - model * r) <= 1.0, axis=1).sum()) for r in candidates]
+    scale = candidates[int(np.argmax(fits))]
     expected = model * scale
     bad = np.flatnonzero(np.any(np.abs(image - expected) > 1.0, axis=1))
     if bad.size == 0:

@@ -21,6 +21,7 @@ decide stay unknown. ``--pipeline.datamanager.dataparser.estimate-degradations F
 from __future__ import annotations
 
 import dataclasses
+import re
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -102,12 +103,23 @@ class GSMSDRAutoDataParser(DataParser):
         return outputs
 
 
+def estimate_folder(folder: Path, names: List[str]) -> Path:
+    """The folder whose copies of the training images the estimate judges: ``images/`` when training reads a
+    downscaled ``images_N/`` and ``images/`` holds every one of them (blur a few pixels wide at full size is a
+    pixel or less after downscaling, too little to tell from sharp), else ``folder`` itself."""
+    full = folder.parent / "images"
+    if re.fullmatch(r"images_\d+", folder.name) and full.is_dir() and all((full / n).is_file() for n in names):
+        return full
+    return folder
+
+
 def estimated_records(image_filenames: List[Path], records: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
     """``records`` with every unknown one (``degraded`` None) replaced by the estimate of its image.
 
-    The estimate judges each photo against the others in its folder (``estimate_scene_records``, cached beside the
-    folder; a reused cache is checked against the degradation.json schema); images it leaves undecided stay
-    unknown. Logs one line with the counts per label.
+    The estimate judges each photo against the others in its folder, at full size when the folder is a downscaled
+    copy (:func:`estimate_folder`), with ``estimate_scene_records`` (cached beside the folder; a reused cache is
+    checked against the degradation.json schema); images it leaves undecided stay unknown. Logs one line with the
+    counts per label.
     """
     from gsmsdr_ns.estimate.records import CACHE_FILE, estimate_scene_records
 
@@ -115,7 +127,7 @@ def estimated_records(image_filenames: List[Path], records: List[Dict[str, Any]]
     if len(folders) != 1:
         CONSOLE.print(f"gsmsdr-data: training images span {len(folders)} folders; not estimating their degradation")
         return records
-    folder = folders.pop()
+    folder = estimate_folder(folders.pop(), [Path(f).name for f in image_filenames])
     entries = estimate_scene_records(folder.parent, folder.name)
     estimated, counts = [], Counter()
     for path, record in zip(image_filenames, records):
@@ -132,7 +144,8 @@ def estimated_records(image_filenames: List[Path], records: List[Dict[str, Any]]
     summary = ", ".join(f"{n} {label}" for label, n in sorted(counts.items()))
     CONSOLE.print(
         f"gsmsdr-data: no degradation records for {sum(counts.values())} training images; estimated from the photos: "
-        f"{summary} (cached in {folder.parent / CACHE_FILE}; write a degradation.json to override)",
+        f"{summary} (judged on {folder}; cached in {folder.parent / CACHE_FILE}; write a degradation.json to "
+        "override)",
         soft_wrap=True,
         markup=False,
         highlight=False,
