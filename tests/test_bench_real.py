@@ -116,6 +116,19 @@ def test_each_method_gets_its_scene(built) -> None:
     assert any("registered" in line for line in built["logs"])
 
 
+def test_methods_train_on_the_shrunk_copies_and_the_estimate_judges_the_full_size_photos(built, tmp_path) -> None:
+    data, scene = built["data"], built["suite"].scenes[0]
+    config = METHODS["full"].make_config(data["full"], tmp_path)
+    scene.configure(config)
+    parser = config.pipeline.datamanager.dataparser
+    parser.data = config.pipeline.datamanager.data  # as the datamanager hands it over
+    outputs = parser.setup().get_dataparser_outputs("train")
+    assert {Path(f).parent for f in outputs.image_filenames} == {data["full"] / "images_2"}
+    cache = json.loads((data["full"] / "degradation.estimated.json").read_text(encoding="utf8"))
+    assert Path(cache["source"]) == data["full"] / "images"
+    assert len(outputs.metadata["degradations"]) == 4
+
+
 def test_scenes_share_cameras_and_differ_only_where_they_should(built) -> None:
     data = built["data"]
     estimated, true = (read_colmap(data[m] / "sparse" / "0", tracks=True) for m in ("full", "full-true"))
@@ -128,10 +141,12 @@ def test_scenes_share_cameras_and_differ_only_where_they_should(built) -> None:
     facts = json.loads((data["full"] / "real_scene.json").read_text(encoding="utf8"))
     assert set(facts["test_views"]) == test_views and facts["training_poses_moved_by_registration"] < 1e-9
     for name in estimated.names:
-        motion = read_image_float(data["full"] / "images" / name)
-        sharp = read_image_float(data["sharp"] / "images" / name)
+        motion = read_image_float(data["full"] / "images_2" / name)
+        sharp = read_image_float(data["sharp"] / "images_2" / name)
         for image in (motion, sharp):  # 252x189, resampled by the undistortion, then shrunk 2x
             assert 90 <= image.shape[1] <= 140 and 68 <= image.shape[0] <= 105, image.shape
+        full = read_image_float(data["full"] / "images" / name)  # what the degradation estimate judges
+        assert full.shape[:2] == (2 * motion.shape[0] + full.shape[0] % 2, 2 * motion.shape[1] + full.shape[1] % 2)
         blurred = float(np.abs(np.diff(motion, axis=1)).mean()) < 0.9 * float(np.abs(np.diff(sharp, axis=1)).mean())
         assert blurred == (name not in test_views), name
 

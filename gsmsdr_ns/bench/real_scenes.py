@@ -36,6 +36,8 @@ from gsmsdr_ns.io.errors import InputError
 
 REAL_SCENE_VERSION = 1
 """Bumped when built real scenes change for the same spec, so cached scenes of an older builder are not reused."""
+COMPOSED_LAYOUT_VERSION = 2
+"""Bumped when the layout of the scenes the methods train on changes (the structure-from-motion steps are reused)."""
 DATA_DIR_ENV = "GSMSDR_DATA_DIR"
 """Environment variable naming a folder that holds photo sets (``$GSMSDR_DATA_DIR/llff-fern``)."""
 REGISTRATION_FILE = "registration.json"
@@ -60,7 +62,8 @@ class RealSceneSpec:
     seed: int = 0
     """Degradation and structure-from-motion seed."""
     train_downscale: int = 1
-    """The built scene's images (training and test) are shrunk by this factor after structure-from-motion."""
+    """Training and test read copies of the built scene's images shrunk by this factor (``images_<N>/``, the
+    dataparser's ``downscale_factor``); the full-size images stay in ``images/``."""
     max_image_size: int = 1000
     """Longest side SIFT sees (``gsmsdr-process --max-image-size``)."""
 
@@ -73,15 +76,22 @@ class RealSceneSpec:
         return f"{self.photos_name}-{Path(self.preset).stem}-h{self.hold}-s{self.seed}-r{REAL_SCENE_VERSION}"
 
     def name(self, records: str = "estimated") -> str:
-        return f"{self.degraded_name}-x{self.train_downscale}-{records}"
+        return f"{self.degraded_name}-x{self.train_downscale}-{records}-l{COMPOSED_LAYOUT_VERSION}"
+
+    def configure(self, config) -> None:
+        """Point a method's TrainerConfig at the shrunk copies (the Deblur-NeRF reader's ``downscale_factor``)."""
+        config.pipeline.datamanager.dataparser.deblur.downscale_factor = self.train_downscale
 
     def sharp_twin(self) -> "RealSceneSpec":
         return dataclasses.replace(self, preset="sharp")
 
     def describe(self) -> str:
+        size = ("trained at full size" if self.train_downscale == 1 else
+                f"trained on copies shrunk {self.train_downscale}x (images_{self.train_downscale}/; the degradation "
+                "estimate judges the full-size images)")  # fmt: skip
         return (f"real photos `{self.dataset}/{self.images}` degraded with `{self.preset}` (every {self.hold}th photo "
                 "a sharp test view), SfM on the degraded training photos alone with the sharp test photos registered "
-                f"into that model, images shrunk {self.train_downscale}x for training")  # fmt: skip
+                f"into that model, {size}")  # fmt: skip
 
 
 def parse_real_spec(values: Any, fail: Callable[[str, str], Exception]) -> RealSceneSpec:
@@ -266,27 +276,29 @@ def _copy_image(src: Path, dst: Path, factor: int) -> None:
 
 def compose_scene(out: Path, registered: Path, hold: int, factor: int) -> Dict[str, Any]:
     """Write the scene the methods train on into ``out``: the ``registered`` scene (every photo posed in the
-    degraded run's frame) with its images and cameras shrunk by ``factor`` and a ``hold=N`` file; returns its
-    build facts."""
+    degraded run's frame) with its full-size images in ``images/``, copies shrunk by ``factor`` in
+    ``images_<factor>/`` (what training reads, as nerfstudio's downscaled folders; the degradation estimate judges
+    the full-size copies) and a ``hold=N`` file; returns its build facts."""
     from gsmsdr_ns.data.layout import holdout_split
     from gsmsdr_ns.io.colmap import read_colmap, write_colmap_model
     from gsmsdr_ns.synth.points import SparsePoints
 
     model = read_colmap(registered / "sparse" / "0", tracks=True, skip_unposed=True)
-    Ks = model.Ks.copy()
-    Ks[:, :2] /= factor
-    sizes = [(int(w) // factor, int(h) // factor) for w, h in model.sizes]
     pts = model.points
     points = SparsePoints(xyz=pts.xyz, rgb=pts.rgb, obs_point=pts.obs_point, obs_view=pts.obs_view,
-                          obs_uv=pts.obs_uv / factor)  # fmt: skip
-    (out / "images").mkdir()
-    for name in model.names:
-        _copy_image(registered / "images" / name, out / "images" / name, factor)
-    write_colmap_model(out / "sparse" / "0", model.names, Ks, sizes, model.w2c, points)
+                          obs_uv=pts.obs_uv)  # fmt: skip
+    folders = {1: out / "images"} | ({factor: out / f"images_{factor}"} if factor > 1 else {})
+    for f, folder in folders.items():
+        folder.mkdir()
+        for name in model.names:
+            _copy_image(registered / "images" / name, folder / name, f)
+    sizes = [(int(w), int(h)) for w, h in model.sizes]
+    write_colmap_model(out / "sparse" / "0", model.names, model.Ks, sizes, model.w2c, points)
     (out / f"hold={hold}").touch()
     _, test = holdout_split(len(model.names), hold)
     return {"views": len(model.names), "names": model.names, "test_views": [model.names[i] for i in test],
-            "size": list(sizes[0]), "points": int(len(pts.xyz))}  # fmt: skip
+            "size": [sizes[0][0] // factor, sizes[0][1] // factor],
+            "full_size": list(sizes[0]), "points": int(len(pts.xyz))}  # fmt: skip
 
 
 def true_records(degradation_json: Path, names: Sequence[str]) -> Dict[str, Any]:

@@ -98,6 +98,7 @@ def train_and_record(
     scene = suite.scene(key.scene)
     data = scene.data(method, scene_root, log)
     config = method.make_config(data, work_dir)
+    scene.configure(config)
     config.experiment_name = key.id
     suite.schedule_for(key.steps).apply(config)
 

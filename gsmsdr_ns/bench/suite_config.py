@@ -63,6 +63,11 @@ class SceneEntry:
         assert path is not None
         return path
 
+    def configure(self, config) -> None:
+        """Scene-specific reader settings on a method's TrainerConfig (a real scene's downscaled copies)."""
+        if self.real is not None:
+            self.real.configure(config)
+
     def describe(self) -> str:
         if self.spec is not None:
             s = self.spec
@@ -77,7 +82,9 @@ class SceneEntry:
         if self.spec is not None:
             return {"generated": dataclasses.asdict(self.spec)}
         if self.real is not None:
-            return {"real": dataclasses.asdict(self.real)}
+            from gsmsdr_ns.bench.real_scenes import COMPOSED_LAYOUT_VERSION
+
+            return {"real": dataclasses.asdict(self.real), "layout": COMPOSED_LAYOUT_VERSION}
         return {"path": str(self.path), "sharp_path": None if self.sharp_path is None else str(self.sharp_path)}
 
 
