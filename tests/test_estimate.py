@@ -210,6 +210,16 @@ def test_views_of_different_content_leave_the_kind_of_blur_unknown():
     assert all(e.label in ("sharp", "unknown") and e.blurred is not True for e in estimates[:-2])
 
 
+def test_a_set_with_one_sharp_view_leaves_the_kind_of_blur_unknown():
+    # With one sharp view, how much content alone spreads the edge orientations is not measured (it is not zero):
+    # the blurred views are recorded as blurred by both kinds, never as a guessed kind.
+    views = sharp_views()
+    blurred = [motion_blur(v) for v in views[1:5]] + [defocus(v) for v in views[5:]]
+    estimates = estimate_degradations([views[0]] + blurred)
+    assert estimates[0].label == "sharp"
+    assert all(e.label == "unknown" and e.blurred is True for e in estimates[1:])
+
+
 def test_evaluation_scores_a_scene_against_its_records(capture, tmp_path):
     from gsmsdr_ns.estimate.evaluate import format_table, score_scene
 

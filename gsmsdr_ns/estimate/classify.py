@@ -11,7 +11,8 @@ image is compared with them.
 * **motion / defocus**: motion blur is directional, so the edges lose their steepness only across the motion;
   defocus flattens every orientation alike. The spread over orientations of the steepness (relative to the
   reference images, orientation by orientation) separates them. When the sharp images of the set themselves
-  show a spread that large (content that differs from view to view), the kind of blur is left unknown.
+  show a spread that large (content that differs from view to view), or when fewer than two sharp images
+  leave that spread unmeasured, the kind of blur is left unknown.
 """
 
 from __future__ import annotations
@@ -122,9 +123,10 @@ def _orientation_spread(by_angle: np.ndarray, baseline: np.ndarray) -> float:
 
 def _content_anisotropy(by_angle: np.ndarray, sharp_idx: list[int]) -> float:
     """Orientation spread that view-to-view content alone causes: median over the sharp images of each one's
-    spread against the others' per-orientation median (leave one out). 0 with fewer than 3 sharp images."""
-    if len(sharp_idx) < 3:
-        return 0.0
+    spread against the others' per-orientation median (leave one out; of two images, each against the other).
+    Infinite with fewer than two sharp images: the spread is then unmeasured, not zero."""
+    if len(sharp_idx) < 2:
+        return math.inf
     spreads = []
     for i in sharp_idx:
         others = [j for j in sharp_idx if j != i]
