@@ -4,6 +4,7 @@ gsmsdr-estimate CLI's records (valid for the data reader, true records kept, ato
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 
@@ -18,13 +19,14 @@ from gsmsdr_ns.io.images import write_image
 from gsmsdr_ns.degrade.kernels import apply_mixres, convolve_psf, disk_blur, motion_kernel_from_trajectory
 from gsmsdr_ns.estimate import EstimateConfig, estimate_degradations
 from gsmsdr_ns.estimate.cli import parse
-from gsmsdr_ns.estimate.features import to_gray
+from gsmsdr_ns.estimate.features import edge_width, to_gray
 from gsmsdr_ns.estimate.records import (
     CACHE_FILE,
     ESTIMATED,
     entry_from_estimate,
     estimate_entries,
     estimate_scene_records,
+    read_folder,
 )
 
 # A hand-held capture: views of one scene from slightly shifted positions (crops of a real photo).
@@ -51,7 +53,11 @@ def motion_blur(rgb: np.ndarray) -> np.ndarray:
 
 
 def defocus(rgb: np.ndarray) -> np.ndarray:
-    return _uint8(disk_blur(_tensor(rgb), 4.0))
+    return defocus_by(rgb, 4.0)
+
+
+def defocus_by(rgb: np.ndarray, radius: float) -> np.ndarray:
+    return _uint8(disk_blur(_tensor(rgb), radius))
 
 
 def upsampled(rgb: np.ndarray, factor: int) -> np.ndarray:
@@ -208,6 +214,52 @@ def test_views_of_different_content_leave_the_kind_of_blur_unknown():
         entry = entry_from_estimate(est)
         assert entry["degraded"] is True and set(entry["effects"]) == {"motion", "defocus"}
     assert all(e.label in ("sharp", "unknown") and e.blurred is not True for e in estimates[:-2])
+
+
+def test_a_set_with_one_sharp_view_leaves_the_kind_of_blur_unknown():
+    # With one sharp view, how much content alone spreads the edge orientations is not measured (it is not zero):
+    # the blurred views are recorded as blurred by both kinds, never as a guessed kind.
+    views = sharp_views()
+    blurred = [motion_blur(v) for v in views[1:5]] + [defocus(v) for v in views[5:]]
+    estimates = estimate_degradations([views[0]] + blurred)
+    assert estimates[0].label == "sharp"
+    assert all(e.label == "unknown" and e.blurred is True for e in estimates[1:])
+
+
+def test_edge_width_is_the_blur_width_of_step_edges():
+    board = np.repeat(skimage.data.checkerboard()[..., None], 3, axis=2)  # 25 px squares: isolated step edges
+    sharp = edge_width(to_gray(board))
+    blurred = edge_width(to_gray(_uint8(disk_blur(_tensor(board), 2.0))))
+    assert 1.3 < sharp[0] <= sharp[1] < 2.0
+    assert 3.0 < blurred[0] <= blurred[1] < 4.5  # a disk 4 px across
+    assert all(math.isnan(w) for w in edge_width(to_gray(np.full((64, 64, 3), 128, np.uint8))))  # no edges
+
+
+def test_a_view_blurred_in_part_is_not_called_sharp():
+    # A lens focused on the upper part of the view: the strongest edges stay as sharp as in the other views, the
+    # softest ones are wider than theirs.
+    views = sharp_views()
+    part = views[5].copy()
+    part[230:] = defocus_by(views[5], 3.0)[230:]  # the lowest fifth out of focus
+    estimates = estimate_degradations(views + [part])
+    assert [e.label for e in estimates[:-1]] == ["sharp"] * len(views)
+    assert estimates[-1].label == "unknown" and estimates[-1].blurred is not True
+    assert estimates[-1].soft_width > EstimateConfig().soft_width_ratio
+
+
+def test_the_spread_of_edge_widths_must_agree_with_the_kind_of_blur(capture):
+    scene, _ = capture
+    names, images = read_folder(scene / "images")
+    motion, defocused = names.index("view_20.png"), names.index("view_21.png")
+    estimates = estimate_degradations(images)
+    assert (estimates[motion].label, estimates[defocused].label) == ("motion", "defocus")
+    # a defocus of the whole view widens every edge towards the disk's width: the spread of widths narrows
+    assert estimates[defocused].width_spread < EstimateConfig().max_defocus_width_spread
+    assert estimates[defocused].width_spread < estimates[motion].width_spread
+    assert estimates[motion].width_spread <= EstimateConfig().max_motion_width_spread
+    strict = estimate_degradations(images, EstimateConfig(max_defocus_width_spread=0.5, max_motion_width_spread=0.5))
+    for i in (motion, defocused):
+        assert strict[i].label == "unknown" and strict[i].blurred is True  # blurred, kind left unknown
 
 
 def test_evaluation_scores_a_scene_against_its_records(capture, tmp_path):

@@ -7,11 +7,17 @@ image is compared with them.
 * **mixres**: an image upsampled from a lower resolution keeps the grid of its low-resolution samples
   (:func:`~gsmsdr_ns.estimate.features.grid_scores`); a grid at factor f (much stronger than in the reference
   images, so a camera's own periodic artefacts do not count) gives mixres with f snapped to the project's groups.
-* **sharp / blurred**: edge steepness and Laplacian variance relative to the reference images, combined.
+* **sharp / blurred**: edge steepness and Laplacian variance relative to the reference images, combined. An
+  image that passes as sharp but whose softest step edges are much wider than those of the set's narrowest-edged
+  images is left unknown: a blur of only part of the view (a lens focused on one depth) leaves the strongest
+  edges sharp, and so does a view whose content is simply softer.
 * **motion / defocus**: motion blur is directional, so the edges lose their steepness only across the motion;
   defocus flattens every orientation alike. The spread over orientations of the steepness (relative to the
-  reference images, orientation by orientation) separates them. When the sharp images of the set themselves
-  show a spread that large (content that differs from view to view), the kind of blur is left unknown.
+  reference images, orientation by orientation) separates them, and the spread of the image's step-edge widths
+  must agree (a defocus of the whole view narrows it; a blur of part of the view widens it, and the orientations
+  then show where the blur is, not its direction). The kind of blur is left unknown when they disagree, when
+  the sharp images of the set themselves spread over orientations that much (content that differs from view to
+  view), or when fewer than two sharp images leave that spread unmeasured.
 """
 
 from __future__ import annotations
@@ -57,6 +63,16 @@ class EstimateConfig:
     """Periodicity score (about 1 without a grid) from which an upsampling grid counts."""
     grid_reference_ratio: float = 5.0
     """... and how many times stronger than in the reference images it must be."""
+    soft_width_ratio: float = 1.2
+    """An image sharp by the measures above is left unknown when its softest step edges (90th percentile width)
+    are more than this many times wider than those of the set's narrowest-edged images."""
+    max_defocus_width_spread: float = 0.85
+    """A blurred image is called defocused only when the spread of its step-edge widths (90th percentile over
+    median, relative to the narrowest-edged images) is at most this: a defocus of the whole view narrows it."""
+    max_motion_width_spread: float = 1.1
+    """... and motion-blurred only when it is at most this: above it part of the view is blurred more than the
+    rest (a lens focused on one depth), and the orientation spread then shows where the blur is, not its
+    direction. Otherwise the kind is left unknown."""
     max_size: int = 1024
     """Blur is judged on a copy whose longer side is at most this many px (0: full resolution)."""
     coarse_sigma: float = 2.0
@@ -87,11 +103,16 @@ class DegradationEstimate:
     """Whether the image is blurred (None: undecided)."""
     reference: bool = False
     """The image is one of the set's sharp reference images."""
+    soft_width: Optional[float] = None
+    """Width of the image's softest step edges relative to the set's narrowest-edged images (1: as narrow);
+    None when the image or the set has too few isolated step edges."""
+    width_spread: Optional[float] = None
+    """Spread of the image's step-edge widths relative to those images' (defocus: below 1; motion: about 1; a
+    blur of part of the view: above 1); None as above."""
 
     def evidence(self) -> dict:
         """The numbers as a JSON-ready dict (rounded)."""
-        out = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
-        return out
+        return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
 
 
 def _combined(edge: float, lap: float) -> float:
@@ -122,14 +143,37 @@ def _orientation_spread(by_angle: np.ndarray, baseline: np.ndarray) -> float:
 
 def _content_anisotropy(by_angle: np.ndarray, sharp_idx: list[int]) -> float:
     """Orientation spread that view-to-view content alone causes: median over the sharp images of each one's
-    spread against the others' per-orientation median (leave one out). 0 with fewer than 3 sharp images."""
-    if len(sharp_idx) < 3:
-        return 0.0
+    spread against the others' per-orientation median (leave one out; of two images, each against the other).
+    Infinite with fewer than two sharp images: the spread is then unmeasured, not zero."""
+    if len(sharp_idx) < 2:
+        return math.inf
     spreads = []
     for i in sharp_idx:
         others = [j for j in sharp_idx if j != i]
         spreads.append(_orientation_spread(by_angle[i], np.nanmedian(by_angle[others], axis=0)))
     return float(np.median(spreads))
+
+
+def _width_evidence(feats: Sequence[ImageFeatures], cfg: EstimateConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Step-edge widths against the set's narrowest-edged images -> (soft width [n], width spread [n]); NaN unknown.
+
+    soft width: the image's 90th-percentile width over the references'. width spread: the image's 90th
+    percentile over its median, over the same ratio of the references. A blur of the whole view widens every edge
+    towards the blur's own width, so defocus narrows the spread (below 1); motion widens only the edges across
+    it (about 1); a blur of part of the view widens the soft tail only (above 1). The references are the images
+    with the narrowest median edge (as many as the sharpness references): edge steepness picks views for their
+    content as much as for their focus, edge width much less.
+    """
+    median = np.array([f.edge_width for f in feats])
+    soft = np.array([f.soft_edge_width for f in feats])
+    known = np.isfinite(median) & np.isfinite(soft)
+    if known.sum() < cfg.min_set_size:
+        return np.full(len(feats), np.nan), np.full(len(feats), np.nan)
+    k = max(cfg.min_reference, int(math.ceil(cfg.reference_fraction * known.sum())))
+    ref = np.argsort(np.where(known, median, np.inf), kind="stable")[:k]
+    soft_width = soft / max(float(np.median(soft[ref])), 1e-6)
+    spread = (soft / median) / max(float(np.median(soft[ref] / median[ref])), 1e-6)
+    return np.where(known, soft_width, np.nan), np.where(known, spread, np.nan)
 
 
 def _grid_factor(feats: Sequence[ImageFeatures], ref: np.ndarray, cfg: EstimateConfig) -> list[tuple[int, float]]:
@@ -175,13 +219,16 @@ def estimate_from_features(
     sharp = np.array([_combined(e, v) for e, v in zip(edge_rel, lap_rel)])
     ref_sharp = _reference(sharp, ref)
     sharp = sharp / max(ref_sharp, 1e-12)
+    soft_width, width_spread = _width_evidence(feats, cfg)
+    with np.errstate(invalid="ignore"):
+        soft = soft_width > cfg.soft_width_ratio  # NaN: no evidence either way
     by_angle = np.stack([f.edge_ratio_by_angle for f in feats])  # [n, bins]
     ref_angle = np.nanmedian(by_angle[ref], axis=0)
     aniso = np.array([_orientation_spread(b, ref_angle) for b in by_angle])
     grid = _grid_factor(feats, ref, cfg)
     ref_set = set(ref.tolist())
     trusted_ref = ref_edge >= cfg.min_reference_edge_ratio and n >= cfg.min_set_size
-    noise = _content_anisotropy(by_angle, [i for i in range(n) if sharp[i] >= cfg.sharp_threshold])
+    noise = _content_anisotropy(by_angle, [i for i in range(n) if sharp[i] >= cfg.sharp_threshold and not soft[i]])
     direction_ok = noise < cfg.max_content_anisotropy
     out = []
     for i in range(n):
@@ -193,8 +240,9 @@ def estimate_from_features(
         elif n < cfg.min_set_size:
             label, blurred, conf = "unknown", None, 0.0
         elif sharp[i] >= cfg.sharp_threshold:
-            label, blurred = ("sharp", False) if trusted_ref else ("unknown", None)
-            conf = _confidence(sharp[i], cfg.sharp_threshold, 2.0) if trusted_ref else 0.0
+            trusted = trusted_ref and not soft[i]  # sharpest edges as sharp as the references', softest not
+            label, blurred = ("sharp", False) if trusted else ("unknown", None)
+            conf = _confidence(sharp[i], cfg.sharp_threshold, 2.0) if trusted else 0.0
         elif sharp[i] >= cfg.blurred_threshold:
             label, blurred, conf = "unknown", None, 0.0
         else:
@@ -202,6 +250,9 @@ def estimate_from_features(
             conf_blur = _confidence(sharp[i], cfg.blurred_threshold, 2.0)
             if direction_ok:
                 label = "motion" if aniso[i] >= cfg.anisotropy_threshold else "defocus"
+                limit = cfg.max_motion_width_spread if label == "motion" else cfg.max_defocus_width_spread
+                if width_spread[i] > limit:  # the edge widths contradict that kind (NaN: no evidence)
+                    label = "unknown"
                 conf = min(conf_blur, _confidence(aniso[i] + 1e-3, cfg.anisotropy_threshold, 2.0))
             else:
                 label, conf = "unknown", 0.0
@@ -217,6 +268,8 @@ def estimate_from_features(
                 grid_score=float(gscore),
                 blurred=blurred,
                 reference=i in ref_set,
+                soft_width=None if math.isnan(soft_width[i]) else float(soft_width[i]),
+                width_spread=None if math.isnan(width_spread[i]) else float(width_spread[i]),
             )
         )
     return out

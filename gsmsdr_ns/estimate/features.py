@@ -1,5 +1,5 @@
 """Per-image measurements behind the degradation estimate: sharpness (Laplacian variance, edge steepness, per
-edge orientation) and the grid periodicity an upsampled image carries.
+edge orientation, step-edge width) and the grid periodicity an upsampled image carries.
 
 Pure functions on grey images ``gray: [H, W]`` (float, values in [0, 1]); none of them knows about the other
 images of a set (the set-relative decisions live in :mod:`gsmsdr_ns.estimate.classify`).
@@ -35,6 +35,12 @@ class ImageFeatures:
     blurred; independent of edge contrast and of how many edges the view shows."""
     edge_ratio_by_angle: np.ndarray
     """[bins] the same per orientation of the edge normal over [0, pi) (NaN: no edges in that bin)."""
+    edge_width: float
+    """Median width in px of the image's isolated step edges (:func:`edge_width`): about 1.5-2 on a sharp image,
+    the blur's extent across the edge when blurred; NaN when the image has too few isolated step edges."""
+    soft_edge_width: float
+    """The same at the 90th percentile (the image's softest step edges): a blur of part of the view (a lens
+    focused on one depth) widens these while the sharpest edges stay sharp."""
     grid_scores: dict[int, float]
     """Per factor f in 2..4: periodicity of the grey image's second (third) differences at the knot spacing of an
     upsampling from 1/f of the size (:func:`grid_scores`); about 1 for images that were not upsampled."""
@@ -103,6 +109,49 @@ def edge_sharpness(
     return float(np.median(ratio)), per_bin
 
 
+def edge_width(
+    gray: Tensor, reach: int = 6, top_fraction: float = 0.05, min_edges: int = 16, sigma: float = 1.0
+) -> tuple[float, float]:
+    """Width in px of the isolated step edges of gray [H, W]: -> (median, 90th percentile) over those edges.
+
+    At the pixels with the strongest gradients (found, with their normal, on the image smoothed by `sigma` px;
+    the top `top_fraction`), the profile across the edge is sampled every px over +-`reach` px. A profile counts
+    as a step when it rises by at least 0.8 of its total variation and is flat at both ends (lines, textures and
+    edges with a neighbour within `reach` do not). Its width is the rise over the steepest 1 px slope: about 1.5
+    for a sharp step, the width of the blur's line spread function when blurred (edges blurred much wider than
+    `reach` px are not flat at the ends and do not count). NaN, NaN with fewer than `min_edges` steps.
+    """
+    x = gray.to(torch.float32)
+    H, W = x.shape
+    margin = reach + 1  # every profile stays inside the image
+    if H <= 2 * margin or W <= 2 * margin:
+        return float("nan"), float("nan")
+    k = 2 * int(math.ceil(3 * sigma)) + 1
+    smooth = gaussian_blur2d(x[None, None], (k, k), (sigma, sigma), border_type="reflect", separable=True)[0, 0]
+    g = sobel_gradient(smooth)[:, margin:-margin, margin:-margin]  # [2, H - 2 margin, W - 2 margin]
+    mag = torch.hypot(g[0], g[1]).flatten()
+    n = min(max(min_edges, int(top_fraction * mag.numel())), mag.numel())
+    strong = torch.topk(mag, n, sorted=False).indices  # the order does not matter: only quantiles are taken
+    strong = strong[mag[strong] > 0]
+    inner_w = W - 2 * margin
+    ys = (strong // inner_w + margin).to(torch.float32)
+    xs = (strong % inner_w + margin).to(torch.float32)
+    normal = g.flatten(1)[:, strong] / mag[strong]  # [2, n] unit (x, y)
+    t = torch.arange(-reach, reach + 1, dtype=torch.float32)
+    px = xs[:, None] + t * normal[0][:, None]  # [n, 2 reach + 1]
+    py = ys[:, None] + t * normal[1][:, None]
+    grid = torch.stack([px / (W - 1) * 2 - 1, py / (H - 1) * 2 - 1], dim=-1)[None]
+    profile = F.grid_sample(x[None, None], grid, mode="bilinear", align_corners=True)[0, 0]
+    slope = torch.diff(profile, dim=1)  # [n, 2 reach]
+    rise, peak = slope.sum(1), slope.max(1).values
+    ends = torch.maximum(slope[:, :2].abs().amax(1), slope[:, -2:].abs().amax(1))
+    step = (rise > 0) & (rise >= 0.8 * slope.abs().sum(1)) & (ends < 0.2 * peak)
+    if int(step.sum()) < min_edges:
+        return float("nan"), float("nan")
+    width = rise[step] / peak[step]
+    return float(width.median()), float(torch.quantile(width, 0.9))
+
+
 def _line_periodicity(profile: Tensor, freq: float) -> float:
     """Power of profile [L] at `freq` cycles per sample, over its mean power per frequency (noise: about 1)."""
     p = profile - profile.mean()
@@ -166,12 +215,15 @@ def image_features(rgb: np.ndarray | Tensor, coarse_sigma: float = 2.0, max_size
         raise ValueError(f"image of {W}x{H} px is too small to estimate its degradation (need >= 16x16)")
     gray = analysis_view(full, max_size)
     edge = edge_sharpness(gray, coarse_sigma)
+    width = edge_width(gray)
     return ImageFeatures(
         width=W,
         height=H,
         laplacian_variance=laplacian_variance(gray),
         edge_ratio=edge[0],
         edge_ratio_by_angle=edge[1],
+        edge_width=width[0],
+        soft_edge_width=width[1],
         grid_scores=grid_scores(full),
     )
 
@@ -184,6 +236,7 @@ __all__ = [
     "sobel_gradient",
     "grid_scores",
     "edge_sharpness",
+    "edge_width",
     "analysis_view",
     "image_features",
 ]
