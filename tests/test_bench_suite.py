@@ -113,8 +113,9 @@ def test_user_scene_without_sharp_twin_skips_the_upper_bound(tmp_path: Path) -> 
 
 
 def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
-    assert set(METHODS) == {"plain", "msd-only", "re-only", "full", "full-true", "full-per-pixel", "-view", "view",
-                            "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite", "sharp"}  # fmt: skip
+    assert set(METHODS) == {"plain", "plain-poses", "msd-only", "re-only", "full", "full-poses", "full-true",
+                            "full-per-pixel", "-view", "view", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite",
+                            "sharp"}  # fmt: skip
 
     def model(name: str):
         return METHODS[name].make_config(tmp_path, tmp_path / "out").pipeline.model
@@ -133,6 +134,13 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert not model("-view").blur_field.view_kernels and model("view").blur_field.mode == "view"
     assert METHODS["re-only"].modules() == dict(GAKA=True, SAFM=True, MCA=True, RGBD=True, HPKO=False)
     assert METHODS["msd-only"].modules() == dict(GAKA=False, SAFM=False, MCA=False, RGBD=True, HPKO=True)
+    # pose refinement: off as in splatfacto, on the degraded views for full-poses, on every view for plain-poses
+    assert model("full").camera_optimizer.mode == "off" and model("plain").camera_optimizer.mode == "off"
+    assert (model("full-poses").camera_optimizer.mode, model("full-poses").camera_optimizer_views) == ("SO3xR3",
+                                                                                                       "degraded")
+    assert (model("plain-poses").camera_optimizer.mode, model("plain-poses").camera_optimizer_views) == ("SO3xR3",
+                                                                                                         "all")
+    assert model("plain-poses").degradation == "sharp"
 
 
 def test_fingerprint_follows_the_resolved_preset(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

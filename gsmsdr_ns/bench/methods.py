@@ -35,6 +35,7 @@ def base_config(base: str, data: Path, output_dir: Path):
     config = gsmsdr_lite_trainer_config() if base == "gsmsdr-lite" else gsmsdr_trainer_config()
     if base in ("plain", "sharp"):
         config.pipeline.model.degradation = "sharp"
+        set_pose_refinement(config.pipeline.model, "off")  # splatfacto's default
     config.data = Path(data)
     config.pipeline.datamanager.data = Path(data)
     config.output_dir = Path(output_dir)
@@ -43,6 +44,15 @@ def base_config(base: str, data: Path, output_dir: Path):
     config.steps_per_eval_all_images = 0
     config.pipeline.model.viewer_blur_outputs = False  # evaluation renders rgb only (the metrics use rgb alone)
     return config
+
+
+def set_pose_refinement(model, views: str) -> None:
+    """Camera optimizer of a GSMSDRModelConfig: "off", or SO3xR3 on the "degraded" or "all" training views."""
+    if views not in ("off", "degraded", "all"):
+        raise ValueError(f"pose refinement must be off, degraded or all, got {views!r}")
+    model.camera_optimizer = dataclasses.replace(model.camera_optimizer, mode="off" if views == "off" else "SO3xR3")
+    if views != "off":
+        model.camera_optimizer_views = views
 
 
 @dataclass(frozen=True)
@@ -64,13 +74,18 @@ class MethodSpec:
     true_records: bool = False
     """On a scene built from real photos, train on its twin that carries the true degradation records (the scene
     itself has none, so the dataparser estimates them)."""
+    pose_refinement: Optional[str] = None
+    """The camera optimizer: None keeps the base preset's (off, as in splatfacto), "off", "degraded" (the views with
+    a degradation model) or "all" (every training view)."""
 
     def make_config(self, data: Path, output_dir: Path):
         """The TrainerConfig of this method on ``data`` (schedules not yet shortened)."""
         config = base_config(self.base, data, output_dir)
+        model = config.pipeline.model
         if self.blur_field:
-            model = config.pipeline.model
             model.blur_field = dataclasses.replace(model.blur_field, **dict(self.blur_field))
+        if self.pose_refinement is not None:
+            set_pose_refinement(model, self.pose_refinement)
         return config
 
     @property
@@ -97,10 +112,16 @@ METHODS: Dict[str, MethodSpec] = {
     m.name: m
     for m in (
         _method("plain", "plain (3DGS)", "plain", "plain Gaussians (degradation sharp) on the degraded images"),
+        MethodSpec("plain-poses", "plain + pose refinement", "plain", (), False,
+                   "plain Gaussians with nerfstudio's camera optimizer (SO3xR3) on every training view",
+                   pose_refinement="all"),  # fmt: skip
         _method("msd-only", "MSD-only", "gsmsdr", "HPKO heads on BAGS' plain CNN (no GAKA/SAFM/MCA)", mode="msd_only"),
         _method("re-only", "RE-only", "gsmsdr", "MAAN features, one full-resolution kernel scale (no HPKO)",
                 mode="re_only"),  # fmt: skip
         _method("full", "GS-MSDR (full)", "gsmsdr", "the gsmsdr preset: MAAN + HPKO, with per-view kernels"),
+        MethodSpec("full-poses", "GS-MSDR (full) + pose refinement", "gsmsdr", (), False,
+                   "full with nerfstudio's camera optimizer (SO3xR3) on the degraded views",
+                   pose_refinement="degraded"),  # fmt: skip
         _method("full-per-pixel", "full, features at every pixel", "gsmsdr",
                 "full with the feature network at every pixel (feature_downsample 1, the paper's field)",
                 feature_downsample=1),  # fmt: skip

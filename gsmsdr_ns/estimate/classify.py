@@ -63,7 +63,7 @@ class EstimateConfig:
     """Periodicity score (about 1 without a grid) from which an upsampling grid counts."""
     grid_reference_ratio: float = 5.0
     """... and how many times stronger than in the reference images it must be."""
-    soft_width_ratio: float = 1.2
+    soft_width_ratio: float = 1.5
     """An image sharp by the measures above is left unknown when its softest step edges (90th percentile width)
     are more than this many times wider than those of the set's narrowest-edged images."""
     max_defocus_width_spread: float = 0.85

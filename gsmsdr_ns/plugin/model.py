@@ -92,6 +92,11 @@ class GSMSDRModelConfig(SplatfactoModelConfig):
     viewer_blur_max_side: int = 128
     """The viewer blur outputs are computed on the render shrunk by a power of two until its longer side is at most
     this (0: full resolution), then enlarged back, so their cost does not grow with the viewer's resolution."""
+    camera_optimizer_views: Literal["degraded", "all"] = "degraded"
+    """Training views whose pose the camera optimizer refines when it is on (``--pipeline.model.camera-optimizer.mode
+    SO3xR3``; off by default, as in splatfacto). degraded: the images with a degradation model (blur makes their
+    structure-from-motion poses uncertain; sharp images keep theirs, anchor the scene and train as plain splatfacto
+    steps); all: every training view (splatfacto)."""
     finite_check_every: Optional[int] = None
     """Steps between reads of the non-finite check: each step's loss terms and Gaussian parameters are checked on the
     device without waiting for it, and every N steps (and before every checkpoint) training stops with
@@ -294,7 +299,7 @@ class GSMSDRModel(SplatfactoModel):
             return self.get_empty_outputs(full_width, full_height, self.background_color.to(self.device))
 
         plan = self._degradation_plan(camera, downscale)
-        viewmats = viewmats_from_camera_to_worlds(self._camera_to_worlds(camera))
+        viewmats = viewmats_from_camera_to_worlds(self._camera_to_worlds(camera, plan))
         with_depth = self.config.output_depth_during_training or not self.training or plan.needs_depth
         render, alpha, self.info = timed(
             "rasterization", self._rasterize, gaussians, viewmats, K, width, height, with_depth
@@ -378,11 +383,17 @@ class GSMSDRModel(SplatfactoModel):
         ``blur_defocus``, ``resolution_model``) for the modules that exist."""
         return self.degradation.get_param_groups(super().get_param_groups())
 
-    def _camera_to_worlds(self, camera: Cameras) -> Tensor:
-        """[1, 3, 4] pose on the model's device, corrected by the camera optimizer while training."""
-        if self.training:
+    def _camera_to_worlds(self, camera: Cameras, plan: DegradationPlan) -> Tensor:
+        """[1, 3, 4] pose on the model's device, corrected by the camera optimizer while training the views it
+        refines (``camera_optimizer_views``)."""
+        refine = self.config.camera_optimizer.mode != "off"
+        if self.training and refine and (self.config.camera_optimizer_views == "all" or self._degraded_view(plan)):
             return self.camera_optimizer.apply_to_camera(camera).to(self.device)
         return camera.camera_to_worlds.to(self.device)
+
+    def _degraded_view(self, plan: DegradationPlan) -> bool:
+        """Whether the plan's training view has a degradation model (whether or not it runs at this step)."""
+        return plan.view_id is not None and not self.degradation.profiles[plan.view_id].is_sharp
 
     def _gaussians_in_crop(self) -> Optional[Dict[str, Tensor]]:
         """The raw Gaussian parameters, restricted to the viewer's crop box at eval time; None if it is empty."""
