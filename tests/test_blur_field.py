@@ -291,7 +291,7 @@ def test_kernel_centre_regulariser():
     centroids[0, 0] = 2.0  # every kernel two rows off its pixel
     losses = f.get_loss_dict({}, None, centroids)
     torch.testing.assert_close(losses["blur_kernel_centre"], torch.tensor(2.0))  # 0.5 * 2^2
-    assert field().get_loss_dict({}, None, centroids) == {}  # off by default
+    assert field(kernel_centre_weight=0.0).get_loss_dict({}, None, centroids) == {}  # 0: off
     with pytest.raises(ValueError, match="kernel_centre_weight"):
         BlurFieldConfig(kernel_centre_weight=-1.0)
 

@@ -319,7 +319,7 @@ class DegradationModel(nn.Module):
                 blurred = timed("kernels", BlurField.blur, image, stages.kernels, self.blur_field.config.linear_light)
                 image = stages.mask * blurred + (1.0 - stages.mask) * image  # BlurField.degrade
                 outputs["blur_mask"] = _hwc(stages.mask)
-                if self.blur_field.config.kernel_centre_weight > 0:
+                if self.blur_field.config.kernel_centre_weight > 0 and not self.profiles[plan.view_id].exact_pose:
                     outputs["blur_kernel_centroids"] = timed("blur_field", _kernel_centroids, stages.kernels)
         if plan.resolution_factor > 1.0:
             assert self.resolution_model is not None

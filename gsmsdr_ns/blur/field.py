@@ -152,10 +152,12 @@ class BlurFieldConfig:
     kernel application only."""
     mask_reg_weight: float = 0.001
     """Weight of the mask regulariser mean(m) (BAGS: 0.001)."""
-    kernel_centre_weight: float = 0.0
+    kernel_centre_weight: float = 1.0
     """Weight of the kernel-centre regulariser: mean squared distance (pixels) of each kernel's centre of mass from
-    its pixel. A blurred photo's pose (from structure-from-motion on the blurred photos) sits at the centre of its
-    blur; a kernel free to shift lets the sharp scene drift off that pose by a different amount in every view."""
+    its pixel, on images whose pose was estimated from the photo (structure-from-motion puts a blurred photo's pose
+    near the centre of its blur; a kernel free to shift lets the sharp scene drift off that pose by a different
+    amount in every view). Images whose records give the exact mid-exposure pose of a simulated shake (generated
+    and ``gsmsdr-degrade`` scenes) are not centred. 0: off."""
     warmup: int = 250
     """The blur field is skipped for the first ``warmup`` steps (BAGS: 250)."""
     switch_steps: Optional[Tuple[int, ...]] = None

@@ -66,6 +66,10 @@ class DegradationProfile:
     """Sensor noise (not modelled: the photometric loss averages it out)."""
     mixres_upsample: str = "bilinear"
     """Interpolation that enlarged a mixres image back to full size (``degradation.json``'s "upsample")."""
+    exact_pose: bool = False
+    """The records give the image's pose as the exact mid-exposure pose of a simulated shake (``gsmsdr-synth`` /
+    ``gsmsdr-degrade`` write ``"reference": "mid_exposure"``). False: the pose was estimated from the photo itself
+    (structure-from-motion puts it near the centre of the blur), or nothing is known."""
 
     def __post_init__(self) -> None:
         f = self.mixres_factor
@@ -136,12 +140,14 @@ class DegradationProfile:
         if factor is None:
             factor = int(mixres.get("factor", 1)) if isinstance(mixres, Mapping) else 1
         upsample = mixres.get("upsample", "bilinear") if isinstance(mixres, Mapping) else "bilinear"
+        motion = effects.get("motion")
         return cls(
             motion="motion" in effects,
             defocus="defocus" in effects,
             mixres_factor=int(factor),
             noise="noise" in effects,
             mixres_upsample=upsample,
+            exact_pose=isinstance(motion, Mapping) and motion.get("reference") == "mid_exposure",
         )
 
     @classmethod
@@ -168,11 +174,12 @@ class DegradationProfile:
         factor = meta.mixres_factor if meta is not None else 1
         noise = meta.noise if meta is not None else False
         upsample = meta.mixres_upsample if meta is not None else "bilinear"
+        exact = meta.exact_pose if meta is not None else False
         if mode == "mixres":
             factor = meta.mixres_factor if meta is not None else None
             return cls(mixres_factor=factor, noise=noise, mixres_upsample=upsample)
         return cls(motion=mode == "motion", defocus=mode == "defocus", mixres_factor=factor, noise=noise,
-                   mixres_upsample=upsample)  # fmt: skip
+                   mixres_upsample=upsample, exact_pose=exact)  # fmt: skip
 
 
 # ------------------------------------------------------------------------------------------------ resolution loss
