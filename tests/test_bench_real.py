@@ -72,7 +72,9 @@ def test_shipped_real_suite_parses() -> None:
     motion, sharp = (s.real for s in suite.scenes)
     assert motion.dataset == "llff-fern" and motion.preset == "motion-strong" and sharp.preset == "sharp"
     assert motion.images == sharp.images and motion.train_downscale == sharp.train_downscale  # the YAML merge key
-    assert suite.methods == ["plain", "full", "full-true", "view", "sharp"] and suite.steps == [3000]
+    assert suite.methods == ["plain", "plain-poses", "full", "full-poses", "full-uncentred", "full-true", "view",
+                             "sharp"] and suite.steps == [3000]  # fmt: skip
+    assert suite.align_poses
     assert suite.threads == 1 and "registered" in suite.scenes[0].describe()
 
 

@@ -73,8 +73,8 @@ def test_a_defocus_and_motion_step_reports_every_stage():
     finally:
         timing_hooks.detach_recorder(recorder)
     timed = [c for kind, c in recorder.events if kind == "timed"]
-    # view 0: rasterization, the thin lens (one fused op: kernels), the field, its kernels; view 1: rasterization,
-    # resolution model
-    assert timed == ["rasterization", "kernels", "blur_field", "kernels", "rasterization", "kernels"]
+    # view 0: rasterization, the thin lens (one fused op: kernels), the field, its kernels, their centres for the
+    # kernel-centre regulariser (blur field); view 1: rasterization, resolution model
+    assert timed == ["rasterization", "kernels", "blur_field", "kernels", "blur_field", "rasterization", "kernels"]
     assert [c for kind, c in recorder.events if kind == "span"] == ["densification", "densification"]
     assert {c for kind, c in recorder.events if kind == "backward"} == {"rasterization", "blur_field", "kernels"}
