@@ -16,8 +16,9 @@ against its sharp ground truth, both composited on the render's background, RGB 
 each then averaged over the test views. With a :class:`~gsmsdr_ns.plugin.pose_alignment.PoseAlignmentConfig`, each
 view is also rendered at its aligned pose (the scene frozen, the test camera's pose optimised on the photometric loss
 against its ground truth, :func:`~gsmsdr_ns.plugin.pose_alignment.align_camera`) and the same metrics are reported
-with the suffix ``_aligned``, plus ``pose_correction_deg``, the mean rotation of the corrections. (The plugin model's own eval metrics, used by ns-eval, come from
-splatfacto's torchmetrics PSNR / SSIM; the bench keeps scikit-image's SSIM so its tables stay comparable.)
+with the suffix ``_aligned``, plus ``pose_correction_deg``, the mean rotation of the corrections. (The plugin model's
+own eval metrics, used by ns-eval, come from splatfacto's torchmetrics PSNR / SSIM; the bench keeps scikit-image's
+SSIM so its tables stay comparable.)
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ def evaluate_test_views(run, lpips=None, align=None) -> Dict[str, float]:
     import numpy as np
     import torch
 
-    from gsmsdr_ns.plugin.pose_alignment import align_camera, camera_with_pose, corrected_pose, frozen_for_alignment
+    from gsmsdr_ns.plugin.pose_alignment import aligned_camera, frozen_for_alignment
 
     pipeline, model = run.pipeline, run.model
     devices = [torch.cuda.current_device()] if torch.cuda.is_available() else []
@@ -67,21 +68,20 @@ def evaluate_test_views(run, lpips=None, align=None) -> Dict[str, float]:
                     continue
                 camera = camera.to(model.device)
                 with frozen_for_alignment(model):
-                    correction = align_camera(model, camera, gt, align)
-                    pose = corrected_pose(camera.camera_to_worlds.reshape(3, 4).to(gt), correction.rotation,
-                                          correction.translation)  # fmt: skip
+                    moved_camera, correction = aligned_camera(model, camera, gt, align)
                     with torch.no_grad():
-                        moved = model.get_outputs_for_camera(camera_with_pose(camera, pose))
+                        moved = model.get_outputs_for_camera(moved_camera)
                 aligned.append(_image_metrics(moved["rgb"], gt, lpips, model.device))
                 corrections.append(correction.rotation_degrees)
     finally:
         pipeline.train()
     if not given:
         raise RuntimeError("the scene has no test views to evaluate")
-    out = {name: float(np.mean([m[name] for m in given])) for name in ("psnr", "ssim", "lpips")}
+    names = ("psnr", "ssim", "lpips")
+    out = {name: float(np.mean([m[name] for m in given])) for name in names}
     out["num_views"] = len(given)
     if align is not None:
-        out.update({f"{name}_aligned": float(np.mean([m[name] for m in aligned])) for name in ("psnr", "ssim", "lpips")})
+        out.update({f"{name}_aligned": float(np.mean([m[name] for m in aligned])) for name in names})
         out["pose_correction_deg"] = float(np.mean(corrections))
     return out
 

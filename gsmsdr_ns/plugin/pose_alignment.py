@@ -141,6 +141,13 @@ def align_camera(model, camera: Cameras, image: Tensor, config: PoseAlignmentCon
     return AlignedPose(rotation.detach(), translation.detach(), before, after)
 
 
+def aligned_camera(model, camera: Cameras, image: Tensor, config: PoseAlignmentConfig) -> Tuple[Cameras, AlignedPose]:
+    """One camera moved to the pose :func:`align_camera` finds for ``image`` (same arguments), and the correction."""
+    correction = align_camera(model, camera, image, config)
+    pose = corrected_pose(camera.camera_to_worlds.reshape(3, 4).to(image), correction.rotation, correction.translation)
+    return camera_with_pose(camera, pose), correction
+
+
 def evaluate_with_alignment(
     pipeline, config: PoseAlignmentConfig, align: bool = True, progress=None
 ) -> Tuple[Dict[str, float], Dict[str, float], List[Dict[str, float]]]:
@@ -166,14 +173,9 @@ def evaluate_with_alignment(
             names = list(given)
             row = {"view": index, **{name: float(value) for name, value in given.items()}}
             if align:
-                aligned_pose = align_camera(model, camera, image, config)
-                pose = corrected_pose(
-                    camera.camera_to_worlds.reshape(3, 4).to(image), aligned_pose.rotation, aligned_pose.translation
-                )
+                moved, aligned_pose = aligned_camera(model, camera, image, config)
                 with torch.no_grad():
-                    aligned, _ = model.get_image_metrics_and_images(
-                        model.get_outputs(camera_with_pose(camera, pose)), batch
-                    )
+                    aligned, _ = model.get_image_metrics_and_images(model.get_outputs(moved), batch)
                 row.update({f"{name}_aligned": float(value) for name, value in aligned.items()})
                 row["rotation_deg"] = aligned_pose.rotation_degrees
                 row["translation"] = float(aligned_pose.translation.norm())
