@@ -247,12 +247,14 @@ def kernel_centroids(weights: Tensor) -> Tensor:
     Returns:
         [B, 2, H, W]: (row, column) offsets, ``sum_k w_k * (i_k - p, j_k - p)``; 0 for a centred (symmetric) kernel.
     """
-    K = pixel_kernel_size(weights.shape[1])
-    offsets = torch.arange(K, device=weights.device, dtype=weights.dtype) - K // 2
-    taps = weights.reshape(weights.shape[0], K, K, *weights.shape[2:])
-    rows = torch.einsum("bijhw,i->bhw", taps, offsets)
-    cols = torch.einsum("bijhw,j->bhw", taps, offsets)
-    return torch.stack([rows, cols], dim=1)
+    offsets = kernel_tap_offsets(pixel_kernel_size(weights.shape[1]), weights.device, weights.dtype)
+    return torch.einsum("mk,bkhw->bmhw", offsets, weights)
+
+
+def kernel_tap_offsets(K: int, device=None, dtype=None) -> Tensor:
+    """[2, K*K] (row, column) offset in pixels of each kernel entry from the window's centre (row-major index)."""
+    offsets = torch.arange(K, device=device, dtype=dtype) - K // 2
+    return torch.stack([offsets.repeat_interleave(K), offsets.repeat(K)])  # entry k = i * K + j: row i, column j
 
 
 def apply_pixel_kernels_unfold(

@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from gsmsdr_ns.blur.kernels import pixel_kernel_size
+from gsmsdr_ns.blur.kernels import kernel_centroids, kernel_tap_offsets, pixel_kernel_size
 
 __all__ = ["kernel_spread", "nearest_view", "preview_downscale", "coarsen_kernels"]
 
@@ -32,12 +32,10 @@ def kernel_spread(weights: Tensor) -> Tensor:
     """
     if weights.dim() != 4:
         raise ValueError(f"weights: expected shape [B, K*K, H, W], got {list(weights.shape)}")
-    K = pixel_kernel_size(weights.shape[1])
-    offsets = torch.arange(K, device=weights.device, dtype=weights.dtype) - K // 2
-    rows, cols = offsets.repeat_interleave(K), offsets.repeat(K)  # entry k = i * K + j: row i, column j
-    moments = torch.stack([rows, cols, rows * rows + cols * cols])  # [3, K*K]
-    mean_row, mean_col, second = torch.einsum("mk,bkhw->mbhw", moments, weights)
-    variance = second - mean_row * mean_row - mean_col * mean_col
+    offsets = kernel_tap_offsets(pixel_kernel_size(weights.shape[1]), weights.device, weights.dtype)
+    mean = kernel_centroids(weights)  # [B, 2, H, W]
+    second = torch.einsum("k,bkhw->bhw", offsets.square().sum(0), weights)
+    variance = second - mean.square().sum(1)
     return variance.clamp_min(0.0).sqrt()[:, None]
 
 
