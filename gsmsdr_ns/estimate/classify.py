@@ -115,6 +115,12 @@ class DegradationEstimate:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
 
 
+def _reference_count(n: int, cfg: EstimateConfig) -> int:
+    """How many of ``n`` images serve as the set's reference: ``reference_fraction`` of them, at least
+    ``min_reference``, at most ``n``."""
+    return min(n, max(cfg.min_reference, int(math.ceil(cfg.reference_fraction * n))))
+
+
 def _combined(edge: float, lap: float) -> float:
     # Geometric mean: the Laplacian reacts strongly to any blur, the edge steepness hardly depends on content.
     return math.sqrt(max(edge, 0.0) * max(lap, 0.0))
@@ -169,8 +175,7 @@ def _width_evidence(feats: Sequence[ImageFeatures], cfg: EstimateConfig) -> tupl
     known = np.isfinite(median) & np.isfinite(soft)
     if known.sum() < cfg.min_set_size:
         return np.full(len(feats), np.nan), np.full(len(feats), np.nan)
-    k = max(cfg.min_reference, int(math.ceil(cfg.reference_fraction * known.sum())))
-    ref = np.argsort(np.where(known, median, np.inf), kind="stable")[:k]
+    ref = np.argsort(np.where(known, median, np.inf), kind="stable")[: _reference_count(int(known.sum()), cfg)]
     soft_width = soft / max(float(np.median(soft[ref])), 1e-6)
     spread = (soft / median) / max(float(np.median(soft[ref] / median[ref])), 1e-6)
     return np.where(known, soft_width, np.nan), np.where(known, spread, np.nan)
@@ -211,8 +216,7 @@ def estimate_from_features(
         raise ValueError("estimate_degradations needs at least one image")
     edge = np.array([f.edge_ratio for f in feats])
     lap = np.array([f.laplacian_variance for f in feats])
-    k = min(n, max(cfg.min_reference, int(math.ceil(cfg.reference_fraction * n))))
-    ref = np.argsort(-edge, kind="stable")[:k]
+    ref = np.argsort(-edge, kind="stable")[: _reference_count(n, cfg)]
     ref_edge = _reference(edge, ref)
     edge_rel = (edge - 1.0) / max(ref_edge - 1.0, 1e-6)
     lap_rel = lap / max(_reference(lap, ref), 1e-12)

@@ -61,6 +61,12 @@ def laplacian_variance(gray: Tensor) -> float:
     return float(laplacian(gray[None, None], 3, normalized=False).var())
 
 
+def gaussian_smooth(gray: Tensor, sigma: float) -> Tensor:
+    """gray [H, W] blurred by a Gaussian of ``sigma`` px (window +-3 sigma, reflected border) -> [H, W]."""
+    k = 2 * int(math.ceil(3 * sigma)) + 1
+    return gaussian_blur2d(gray[None, None], (k, k), (sigma, sigma), border_type="reflect", separable=True)[0, 0]
+
+
 def sobel_gradient(gray: Tensor) -> Tensor:
     """Normalised Sobel gradient of gray [H, W] (replicated border) -> [2, H, W] (d/dx, d/dy).
 
@@ -87,11 +93,9 @@ def edge_sharpness(
     NaN for a bin without edges). Motion blur lowers the ratio only for edges across its direction.
     """
     x = gray.to(torch.float32)  # float32: the filters cost a fraction of float64's
-    k = 2 * int(math.ceil(3 * sigma)) + 1
     g_fine = sobel_gradient(x)  # [2, H, W]
-    blurred = gaussian_blur2d(x[None, None], (k, k), (sigma, sigma), border_type="reflect", separable=True)[0, 0]
-    g_coarse = sobel_gradient(blurred)
-    m = k // 2  # the border rows are biased by the padding
+    g_coarse = sobel_gradient(gaussian_smooth(x, sigma))
+    m = int(math.ceil(3 * sigma))  # the border rows (the filter's reach) are biased by the padding
     g_fine, g_coarse = g_fine[:, m:-m, m:-m], g_coarse[:, m:-m, m:-m]
     # hypot, not norm(dim=0): the vector norm over the leading axis of these slices is many times slower
     mag_coarse = torch.hypot(g_coarse[0], g_coarse[1]).flatten()
@@ -126,9 +130,7 @@ def edge_width(
     margin = reach + 1  # every profile stays inside the image
     if H <= 2 * margin or W <= 2 * margin:
         return float("nan"), float("nan")
-    k = 2 * int(math.ceil(3 * sigma)) + 1
-    smooth = gaussian_blur2d(x[None, None], (k, k), (sigma, sigma), border_type="reflect", separable=True)[0, 0]
-    g = sobel_gradient(smooth)[:, margin:-margin, margin:-margin]  # [2, H - 2 margin, W - 2 margin]
+    g = sobel_gradient(gaussian_smooth(x, sigma))[:, margin:-margin, margin:-margin]  # [2, H - 2 margin, W - 2 margin]
     mag = torch.hypot(g[0], g[1]).flatten()
     n = min(max(min_edges, int(top_fraction * mag.numel())), mag.numel())
     strong = torch.topk(mag, n, sorted=False).indices  # the order does not matter: only quantiles are taken
@@ -233,6 +235,7 @@ __all__ = [
     "ImageFeatures",
     "to_gray",
     "laplacian_variance",
+    "gaussian_smooth",
     "sobel_gradient",
     "grid_scores",
     "edge_sharpness",
