@@ -174,6 +174,13 @@ def _fail(source: Path, key: str, message: str) -> SuiteConfigError:
     return SuiteConfigError(f"{source}: {key}: {message}")
 
 
+def _bool(values: Mapping[str, Any], key: str, default: bool, source: Path) -> bool:
+    value = values.get(key, default)
+    if not isinstance(value, bool):
+        raise _fail(source, key, f"must be true or false, got {value!r}")
+    return value
+
+
 def _int_list(values: Any, source: Path, key: str, minimum: int) -> List[int]:
     items = values if isinstance(values, list) else [values]
     if not items:
@@ -335,12 +342,8 @@ def load_suite(path: str | Path) -> Suite:
     threads = values.get("threads", 1)
     if isinstance(threads, bool) or not isinstance(threads, int) or threads < 0:
         raise _fail(source, "threads", f"must be an integer >= 0, got {threads!r}")
-    lpips = values.get("lpips", True)
-    if not isinstance(lpips, bool):
-        raise _fail(source, "lpips", f"must be true or false, got {lpips!r}")
-    align_poses = values.get("align_poses", False)
-    if not isinstance(align_poses, bool):
-        raise _fail(source, "align_poses", f"must be true or false, got {align_poses!r}")
+    lpips = _bool(values, "lpips", True, source)
+    align_poses = _bool(values, "align_poses", False, source)
     schedule = _check_schedule(values.get("schedule") or {}, source)
 
     scene_root = values.get("scene_root")
