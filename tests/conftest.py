@@ -177,3 +177,18 @@ def shared_fern() -> Path:
             return root / "llff-fern"
     pytest.fail(f"the fern photos (llff-fern) are missing: looked in {roots[0]} and its parents' shared/data; they "
                 "sit beside the repository in CI, or set GSMSDR_SHARED_DATA")  # fmt: skip
+
+
+def shaken_photo(path: Path, extent_px: float, drift_px: tuple = (-2.0, 3.0), samples: int = 25):
+    """The photo at ``path`` [H, W, 3] uint8, blurred by a camera shake along a straight path: ``extent_px`` px wide
+    in x (centred), from ``drift_px[0]`` to ``drift_px[1]`` px in y, sampled ``samples`` times."""
+    import numpy as np
+    import torch
+
+    from gsmsdr_ns.degrade.kernels import convolve_psf, motion_kernel_from_trajectory
+    from gsmsdr_ns.io.images import read_image
+
+    image = torch.from_numpy(read_image(path)[..., :3].astype(np.float32) / 255.0).permute(2, 0, 1)[None]
+    shake = np.stack([np.linspace(-extent_px / 2, extent_px / 2, samples), np.linspace(*drift_px, samples)], axis=1)
+    image = convolve_psf(image, motion_kernel_from_trajectory(shake).float())
+    return (image[0].permute(1, 2, 0).clamp(0, 1).numpy() * 255).round().astype(np.uint8)

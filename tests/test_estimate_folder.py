@@ -7,23 +7,13 @@ import json
 import shutil
 from pathlib import Path
 
-import numpy as np
-import torch
 from PIL import Image
 
-from conftest import shared_fern
-from gsmsdr_ns.degrade.kernels import convolve_psf, motion_kernel_from_trajectory
-from gsmsdr_ns.io.images import read_image, write_image
+from conftest import shaken_photo, shared_fern
+from gsmsdr_ns.io.images import write_image
 from gsmsdr_ns.plugin.auto_dataparser import GSMSDRAutoDataParserConfig, estimate_folder
 
 SHAKEN = ("image004.png", "image011.png", "image014.png")
-
-
-def _shaken(path: Path) -> np.ndarray:
-    image = torch.from_numpy(read_image(path)[..., :3].astype(np.float32) / 255.0).permute(2, 0, 1)[None]
-    path_px = np.stack([np.linspace(-8, 8, 33), np.linspace(-2, 3, 33)], axis=1)
-    image = convolve_psf(image, motion_kernel_from_trajectory(path_px).float())
-    return (image[0].permute(1, 2, 0).clamp(0, 1).numpy() * 255).round().astype(np.uint8)
 
 
 def _scene(root: Path) -> Path:
@@ -34,7 +24,7 @@ def _scene(root: Path) -> Path:
     (scene / "images_2").mkdir()
     for name in sorted(p.name for p in (scene / "images").iterdir()):
         if name in SHAKEN:
-            write_image(scene / "images" / name, _shaken(scene / "images" / name))
+            write_image(scene / "images" / name, shaken_photo(scene / "images" / name, 16.0, samples=33))
         with Image.open(scene / "images" / name) as image:
             image.resize((image.width // 2, image.height // 2), Image.Resampling.LANCZOS).save(scene / "images_2" / name)
     return scene

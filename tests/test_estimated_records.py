@@ -11,21 +11,19 @@ import pytest
 import torch
 
 from gsmsdr_ns.blur.profile import training_profiles
-from gsmsdr_ns.degrade.kernels import convolve_psf, disk_blur, motion_kernel_from_trajectory
+from gsmsdr_ns.degrade.kernels import disk_blur
 from gsmsdr_ns.io.images import read_image, write_image
-from conftest import shared_fern
+from conftest import shaken_photo, shared_fern
 
 MOTION = ("image003.png", "image010.png", "image013.png")
 DEFOCUS = ("image005.png", "image017.png")
 
 
 def _blurred(path: Path, effect: str) -> np.ndarray:
-    image = torch.from_numpy(read_image(path)[..., :3].astype(np.float32) / 255.0).permute(2, 0, 1)[None]
     if effect == "motion":
-        shake = np.stack([np.linspace(-6, 6, 25), np.linspace(-2, 3, 25)], axis=1)
-        image = convolve_psf(image, motion_kernel_from_trajectory(shake).float())
-    else:
-        image = disk_blur(image, 4.0)
+        return shaken_photo(path, 12.0)
+    image = torch.from_numpy(read_image(path)[..., :3].astype(np.float32) / 255.0).permute(2, 0, 1)[None]
+    image = disk_blur(image, 4.0)
     return (image[0].permute(1, 2, 0).clamp(0, 1).numpy() * 255).round().astype(np.uint8)
 
 

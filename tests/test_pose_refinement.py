@@ -8,7 +8,6 @@ import json
 from pathlib import Path
 
 import pytest
-import torch
 
 from conftest import cpu_trainer_config
 
@@ -29,8 +28,6 @@ def scene(tmp_path_factory) -> Path:
 
 
 def _pose_adjustments(scene: Path, out: Path, views: str):
-    from nerfstudio.engine.trainer import Trainer  # noqa: F401  (the config's target)
-
     config = cpu_trainer_config(scene, out, max_steps=12)
     config.pipeline.datamanager.dataparser.estimate_degradations = True
     model = config.pipeline.model
