@@ -315,6 +315,7 @@ def test_suite_outputs_parse(interrupted_suite) -> None:
         assert 5 < float(r["psnr"]) < 60 and 0 < float(r["ssim"]) <= 1
         # test-pose alignment keeps the given pose unless it fits the photo better
         assert float(r["psnr_aligned"]) >= float(r["psnr"]) - 0.01 and float(r["pose_correction_deg"]) >= 0
+        assert "lpips_aligned" in r  # empty without LPIPS weights, like lpips
         parts = sum(float(r[f"t_{c}"]) for c in ("rasterization", "blur_field", "kernels", "densification", "data",
                                                  "other"))  # fmt: skip
         assert parts == pytest.approx(float(r["train_seconds"]), rel=1e-3, abs=0.01)

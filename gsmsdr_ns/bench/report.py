@@ -20,7 +20,7 @@ from gsmsdr_ns.bench.timing import CATEGORIES
 CSV_FIELDS = ("suite", "scene", "method", "steps", "seed", "psnr", "ssim", "lpips", "train_seconds", "step_ms",
               *(f"t_{c}" for c in CATEGORIES), "peak_rss_mb", "peak_cuda_mb", "num_gaussians", "eval_seconds",
               "setup_seconds", "device", "torch_threads", "psnr_aligned", "ssim_aligned",
-              "pose_correction_deg")  # fmt: skip
+              "lpips_aligned", "pose_correction_deg")  # fmt: skip
 
 
 def _num(value: Any, digits: int) -> str:
@@ -44,7 +44,7 @@ def write_csv(records: Sequence[Mapping[str, Any]], path: Path) -> None:
                          _num(r["peak_cuda_mb"], 1), r["num_gaussians"], _num(r["eval_seconds"], 2),
                          _num(r["setup_seconds"], 2), m.get("device", ""), m.get("torch_threads", ""),
                          _num(r.get("psnr_aligned"), 4), _num(r.get("ssim_aligned"), 5),
-                         _num(r.get("pose_correction_deg"), 3)])  # fmt: skip
+                         _num(r.get("lpips_aligned"), 5), _num(r.get("pose_correction_deg"), 3)])  # fmt: skip
     write_text_atomic(path, buffer.getvalue())
 
 
@@ -54,7 +54,8 @@ def _mean(values: Sequence[float]) -> float:
 
 
 def aggregate(records: Sequence[Mapping[str, Any]]) -> Dict[Tuple[int, str, str], Dict[str, Any]]:
-    """Seed means per (steps, scene, method): the metrics, times, memory, Gaussians and the breakdown."""
+    """Seed means per (steps, scene, method): the metrics, times, memory, Gaussians and the breakdown; also the
+    lowest and highest PSNR over the seeds (``psnr_min``, ``psnr_max``)."""
     groups: Dict[Tuple[int, str, str], List[Mapping[str, Any]]] = {}
     for r in records:
         groups.setdefault((r["steps"], r["scene"], r["method"]), []).append(r)
@@ -65,6 +66,8 @@ def aggregate(records: Sequence[Mapping[str, Any]]) -> Dict[Tuple[int, str, str]
                      "num_gaussians", "eval_seconds", "psnr_aligned", "ssim_aligned", "lpips_aligned",
                      "pose_correction_deg"):  # fmt: skip
             row[name] = _mean([r.get(name, float("nan")) for r in rs])
+        psnrs = [float(r["psnr"]) for r in rs if math.isfinite(float(r["psnr"]))]
+        row["psnr_min"], row["psnr_max"] = (min(psnrs), max(psnrs)) if psnrs else (float("nan"), float("nan"))
         row["breakdown"] = {c: _mean([r.get("breakdown", {}).get(c, float("nan")) for r in rs]) for c in CATEGORIES}
         split = [r.get("breakdown_split") for r in rs if r.get("breakdown_split")]
         row["backward"] = {c: _mean([s["backward"].get(c, float("nan")) for s in split]) for c in CATEGORIES[:-1]}
@@ -140,7 +143,7 @@ def format_markdown(
             head += ["PSNR aligned", "SSIM aligned", "pose corr. °"] if show_aligned else []
             head += ["train s", "ms/step", "peak mem MB"]
             head += ["peak CUDA MB"] if show_cuda else []
-            head += ["Gaussians"] + (["seeds"] if multi_seed else [])
+            head += ["Gaussians"] + (["seeds", "PSNR lowest - highest seed"] if multi_seed else [])
             lines.append("| " + " | ".join(head) + " |")
             lines.append("| --- | " + " | ".join("---:" for _ in head[1:]) + " |")
             for m, r in rows:
@@ -149,7 +152,8 @@ def format_markdown(
                     cells += [_f(r["psnr_aligned"]), _f(r["ssim_aligned"], 4), _f(r["pose_correction_deg"], 2)]
                 cells += [_f(r["train_seconds"], 0), _f(r["step_ms"], 0), _f(r["peak_rss_mb"], 0)]
                 cells += [_f(r["peak_cuda_mb"], 0)] if show_cuda else []
-                cells += [_f(r["num_gaussians"], 0)] + ([str(r["seeds"])] if multi_seed else [])
+                cells += [_f(r["num_gaussians"], 0)]
+                cells += [str(r["seeds"]), f"{_f(r['psnr_min'])} - {_f(r['psnr_max'])}"] if multi_seed else []
                 lines.append("| " + " | ".join(cells) + " |")
             lines.append("")
 
@@ -209,6 +213,15 @@ def format_markdown(
                      "`gsmsdr_ns/bench/timing.py`).")  # fmt: skip
         lines.append("")
 
+        by_seed = {(r["scene"], r["method"], r["seed"]): float(r["psnr"]) for r in records if r["steps"] == steps}
+
+        def seed_gaps(scene: str, method: str) -> str:
+            """Lowest and highest PSNR gap to plain over the seeds both were trained with (same seed = same data
+            order and initialisation)."""
+            gaps = [v - by_seed[(scene, "plain", sd)] for (sc, m, sd), v in by_seed.items()
+                    if sc == scene and m == method and (scene, "plain", sd) in by_seed]  # fmt: skip
+            return f"{_sign(min(gaps))} .. {_sign(max(gaps))}" if gaps else "-"
+
         gap_rows = []
         aligned_gaps = any(math.isfinite(r["psnr_aligned"]) for (st, _, _), r in agg.items() if st == steps)
         for scene in suite.scenes:
@@ -216,6 +229,7 @@ def format_markdown(
             if plain and sharp:
                 cells = ["0.00", "0.0000", _sign(sharp["psnr"] - plain["psnr"])]
                 cells += ["0.00"] if aligned_gaps else []
+                cells += ["-"] if multi_seed else []
                 gap_rows.append(f"| {scene.name} | {METHODS['plain'].label} | " + " | ".join(cells) + " |")
             for m in suite.methods:
                 if m in ("plain", "sharp"):
@@ -229,13 +243,16 @@ def format_markdown(
                          _sign(sharp["psnr"] - r["psnr"] if sharp else nan)]  # fmt: skip
                 if aligned_gaps:
                     cells.append(_sign(r["psnr_aligned"] - plain["psnr_aligned"] if plain else nan))
+                if multi_seed:
+                    cells.append(seed_gaps(scene.name, m))
                 gap_rows.append(f"| {scene.name} | {METHODS[m].label} | " + " | ".join(cells) + " |")
         if gap_rows:
             lines += [f"## Gaps{suffix} (test PSNR in dB, SSIM)", ""]
             extra = " PSNR aligned: method - plain |" if aligned_gaps else ""
+            extra += " PSNR: method - plain, per seed (lowest .. highest) |" if multi_seed else ""
             lines.append("| scene | method | PSNR: method - plain | SSIM: method - plain | PSNR: sharp - method |"
                          + extra)  # fmt: skip
-            lines.append("| --- | --- | ---: | ---: | ---: |" + (" ---: |" if aligned_gaps else ""))
+            lines.append("| --- | --- | ---: | ---: | ---: |" + " ---: |" * (aligned_gaps + multi_seed))
             lines += gap_rows
             lines.append("")
 

@@ -1,0 +1,50 @@
+"""results.md of a suite trained with several seeds: seed means, each method's lowest and highest PSNR over the
+seeds, and the per-seed gap to plain (paired by seed). Records written by hand in the runner's format."""
+
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+from gsmsdr_ns.bench.report import aggregate, format_markdown
+from gsmsdr_ns.bench.suite_config import load_suite
+
+SUITE = """\
+name: seeds
+scene_defaults: {width: 64, height: 48, num_views: 10, hold: 5, num_points: 400, seed: 0}
+scenes: [motion]
+methods: [plain, full]
+steps: [20]
+seeds: [0, 1, 2]
+"""
+
+# (method, seed) -> PSNR: full gains +1.0, +2.0 and +0.5 over plain at seeds 0, 1, 2
+PSNR = {("plain", 0): 20.0, ("plain", 1): 21.0, ("plain", 2): 22.0,
+        ("full", 0): 21.0, ("full", 1): 23.0, ("full", 2): 22.5}  # fmt: skip
+
+
+def _record(method: str, seed: int) -> dict:
+    return {"suite": "seeds", "scene": "motion", "method": method, "steps": 20, "seed": seed,
+            "psnr": PSNR[(method, seed)], "ssim": 0.5, "lpips": float("nan"), "train_seconds": 1.0, "step_ms": 50.0,
+            "peak_rss_mb": 100.0, "peak_cuda_mb": float("nan"), "num_gaussians": 400, "eval_seconds": 0.1,
+            "breakdown": {}}  # fmt: skip
+
+
+def test_seed_spread_and_paired_gaps(tmp_path: Path) -> None:
+    path = tmp_path / "seeds.yaml"
+    path.write_text(textwrap.dedent(SUITE), encoding="utf8")
+    suite = load_suite(path)
+    records = [_record(m, s) for (m, s) in PSNR]
+    agg = aggregate(records)
+    full = agg[(20, "motion", "full")]
+    assert full["seeds"] == 3 and abs(full["psnr"] - 22.1666667) < 1e-6
+    assert (full["psnr_min"], full["psnr_max"]) == (21.0, 23.0)
+
+    text = format_markdown(suite, records)
+    full_row = next(line for line in text.splitlines() if line.startswith("| GS-MSDR (full) | 22.17"))
+    assert full_row.rstrip(" |").endswith("| 3 | 21.00 - 23.00")
+    gaps = text[text.index("## Gaps") :].splitlines()
+    gap_row = next(line for line in gaps if line.startswith("| motion | GS-MSDR (full) |"))
+    cells = [c.strip() for c in gap_row.strip("|").split("|")]
+    assert cells[2] == "+1.17"  # difference of the seed means
+    assert cells[-1] == "+0.50 .. +2.00"  # paired by seed, not the spread of the means
