@@ -166,17 +166,18 @@ def cpu_trainer_config(scene: Path, output_dir: Path, max_steps: int):
 
 
 def shared_fern() -> Path:
-    """The real LLFF fern photos (``llff-fern``, with ``images_8``, ``images_16`` and ``poses_bounds.npy``):
-    under $GSMSDR_SHARED_DATA, else in ``shared/data/`` of the nearest parent folder of the tests that has them
-    (beside the repository in CI, further up from a git worktree). Fails the test, naming where it looked, when
-    they are missing."""
-    env = os.environ.get("GSMSDR_SHARED_DATA")
-    roots = [Path(env)] if env else [folder / "shared" / "data" for folder in Path(__file__).resolve().parents]
-    for root in roots:
-        if (root / "llff-fern" / "images_16").is_dir():
-            return root / "llff-fern"
-    pytest.fail(f"the fern photos (llff-fern) are missing: looked in {roots[0]} and its parents' shared/data; they "
-                "sit beside the repository in CI, or set GSMSDR_SHARED_DATA")  # fmt: skip
+    """The real LLFF fern photos (``llff-fern``, with ``images_8``, ``images_16`` and ``poses_bounds.npy``): under
+    $GSMSDR_DATA_DIR, else in ``shared/data/`` of the nearest parent folder of the tests that has them (beside the
+    repository in CI, further up from a git worktree). Fails the test, naming where it looked, when they are
+    missing."""
+    from gsmsdr_ns.io.photo_sets import DATA_DIR_ENV, find_photo_set, photo_set_roots
+
+    anchors = [Path(__file__).parent]
+    fern = find_photo_set("llff-fern", anchors, subfolder="images_16")
+    if fern is None:
+        pytest.fail(f"the fern photos (llff-fern) are missing: looked in {photo_set_roots(anchors)[0]} and its "
+                    f"parents' shared/data; they sit beside the repository in CI, or set {DATA_DIR_ENV}")  # fmt: skip
+    return fern
 
 
 def shaken_photo(path: Path, extent_px: float, drift_px: tuple = (-2.0, 3.0), samples: int = 25):

@@ -56,7 +56,7 @@ def rotation_angle_deg(rotations: np.ndarray) -> np.ndarray:
 def fern_scene(tmp_path_factory: pytest.TempPathFactory):
     """``gsmsdr-process`` (its CLI main) run once on the 20 fern photos."""
     if not FERN_IMAGES.is_dir():
-        pytest.fail(f"the fern photos are missing: expected them at {FERN_IMAGES} (set GSMSDR_SHARED_DATA)")
+        pytest.fail(f"the fern photos are missing: expected them at {FERN_IMAGES} (set GSMSDR_DATA_DIR)")
     out = tmp_path_factory.mktemp("process") / "fern"
     start = time.perf_counter()
     result = parse(["--images", str(FERN_IMAGES), "--out", str(out), "--hold", "8"]).main()

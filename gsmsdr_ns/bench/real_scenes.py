@@ -33,13 +33,12 @@ import numpy as np
 
 from gsmsdr_ns.io.atomic import atomic_dir, temp_sibling_dir, write_json_atomic
 from gsmsdr_ns.io.errors import InputError
+from gsmsdr_ns.io.photo_sets import DATA_DIR_ENV, photo_set_roots
 
 REAL_SCENE_VERSION = 1
 """Bumped when built real scenes change for the same spec, so cached scenes of an older builder are not reused."""
 COMPOSED_LAYOUT_VERSION = 2
 """Bumped when the layout of the scenes the methods train on changes (the structure-from-motion steps are reused)."""
-DATA_DIR_ENV = "GSMSDR_DATA_DIR"
-"""Environment variable naming a folder that holds photo sets (``$GSMSDR_DATA_DIR/llff-fern``)."""
 REGISTRATION_FILE = "registration.json"
 """Written last into the registered scene of step 3 (its facts); its presence marks that scene complete."""
 RECORDS = ("estimated", "true")
@@ -121,25 +120,11 @@ def parse_real_spec(values: Any, fail: Callable[[str, str], Exception]) -> RealS
     return spec
 
 
-def _search_roots(anchors: Sequence[Path]) -> List[Path]:
-    roots: List[Path] = []
-    env = os.environ.get(DATA_DIR_ENV)
-    if env:
-        roots.append(Path(env).expanduser())
-    for anchor in anchors:
-        for folder in [Path(anchor).absolute(), *Path(anchor).absolute().parents]:
-            candidate = folder / "shared" / "data"
-            if candidate not in roots:
-                roots.append(candidate)
-    return roots
-
-
 def resolve_photos(spec: RealSceneSpec, anchors: Sequence[Path] = ()) -> Path:
     """The folder of ``spec``'s photos: ``dataset`` as a path, else under $GSMSDR_DATA_DIR, else ``shared/data/``
     in a parent of the ``anchors`` (the suite file, the working directory); InputError naming the places looked."""
     direct = Path(spec.dataset).expanduser()
-    candidates = [direct] if direct.is_absolute() else [root / spec.dataset for root in _search_roots(
-        [*anchors, Path.cwd(), Path(__file__).parent])]  # fmt: skip
+    candidates = [direct] if direct.is_absolute() else [root / spec.dataset for root in photo_set_roots([*anchors, Path.cwd()])]
     for folder in candidates:
         if (folder / spec.images).is_dir():
             return folder / spec.images
