@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,14 +29,15 @@ import tyro
 
 from ..data.cameras import llff_to_opencv
 from ..io.images import list_images, read_image
+from ..io.photo_sets import find_photo_set, photo_set_roots
 from ..degrade.variants import BUILTIN_PRESETS, VARIANTS
 from .classify import EstimateConfig, estimate_degradations
 
 SYNTH_VARIANTS = ("sharp", "motion", "defocus", "mixres", "mixed", "motion-strong", "defocus-strong")
 PHOTO_VARIANTS = ("motion", "defocus", "mixres", "motion-defocus", "mixed", "motion-strong", "defocus-strong")
 _OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
-SHARED_DATA = Path(os.environ.get("GSMSDR_SHARED_DATA", Path(__file__).resolve().parents[2] / ".." / "shared" / "data"))
-"""The project's shared real data (beside the repository; GSMSDR_SHARED_DATA points elsewhere)."""
+FERN = find_photo_set("llff-fern", subfolder="images_8") or photo_set_roots()[0] / "llff-fern"
+"""The real LLFF fern photos ($GSMSDR_DATA_DIR/llff-fern, else shared/data/llff-fern beside the repository)."""
 
 
 def llff_transforms(images_dir: Path, poses_bounds: Path) -> dict:
@@ -183,7 +183,7 @@ class EvaluateCLI:
 
     work: Path = Path("/tmp/gsmsdr-estimate-eval")
     """Where the evaluation scenes are written (once; later runs reuse them)."""
-    photos: Tuple[Path, ...] = (SHARED_DATA / "llff-fern" / "images_8",)
+    photos: Tuple[Path, ...] = (FERN / "images_8",)
     """Folders of real sharp photos with poses_bounds.npy beside them (LLFF); none to skip."""
     synth: bool = True
     """Evaluate the procedural scenes (gsmsdr-synth variants)."""
