@@ -142,8 +142,9 @@ def write_transforms_json(src: Path, dst: Path) -> Path:
 
 def cpu_trainer_config(scene: Path, output_dir: Path, max_steps: int):
     """The ``gsmsdr`` TrainerConfig on ``scene`` as the in-process trainer tests use it: CPU, tensorboard only, no
-    periodic saves, evaluations or logs, nothing known about the images (thin lens + field on every image), a lite
-    blur field on from step 0, full resolution from the start."""
+    periodic saves, evaluations or logs, nothing known about the images, the thin lens put before the field on every
+    image (``thin_lens_for_unknown_kind``: the most expensive path, every part exercised), a lite blur field on from
+    step 0, full resolution from the start."""
     from gsmsdr_ns.blur.field import BlurFieldConfig
     from gsmsdr_ns.plugin.method_config import gsmsdr_trainer_config
 
@@ -158,10 +159,10 @@ def cpu_trainer_config(scene: Path, output_dir: Path, max_steps: int):
     config.logging.steps_per_log = 10_000
     config.logging.local_writer.enable = False
     config.pipeline.datamanager.data = scene
-    config.pipeline.datamanager.dataparser.estimate_degradations = False  # unknown images: lens + field
+    config.pipeline.datamanager.dataparser.estimate_degradations = False  # nothing known about any image
     model = config.pipeline.model
     model.num_downscales, model.warmup_length = 0, 2
-    model.blur_field = BlurFieldConfig(size="lite", kernel_sizes=(3, 5, 9), warmup=0)
+    model.blur_field = BlurFieldConfig(size="lite", kernel_sizes=(3, 5, 9), warmup=0, thin_lens_for_unknown_kind=True)
     return config
 
 

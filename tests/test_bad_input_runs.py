@@ -315,6 +315,28 @@ def test_a_gsmsdr_checkpoint_in_gsmsdr_lite_names_the_blur_field_widths():
         full.load_state_dict(other_scene.state_dict())
 
 
+def test_a_checkpoint_with_a_lens_for_unknown_blur_names_the_flag_to_load_it():
+    """Before the thin lens became optional on images of unknown blur, such scenes' checkpoints carry one."""
+    with_lens = make_unknown_config(lens=True)
+    without = make_unknown_config(lens=False)
+    with pytest.raises(CheckpointMismatchError, match=r"has a thin lens .*blur-field.thin-lens-for-unknown-kind True\)"):
+        without.load_state_dict(with_lens.state_dict())
+    with pytest.raises(CheckpointMismatchError, match=r"has no thin lens, but .*blur-field.thin-lens False"):
+        with_lens.load_state_dict(without.state_dict())
+    without.load_state_dict(make_unknown_config(lens=False).state_dict())  # the same config loads
+
+
+def make_unknown_config(lens: bool):
+    """A gsmsdr model on 4 training views nothing is known about, with or without the thin lens on them."""
+    config = gsmsdr_trainer_config().pipeline.model
+    blur = dataclasses.replace(config.blur_field, thin_lens_for_unknown_kind=lens)
+    config = dataclasses.replace(config, degradation="auto", num_random=50, blur_field=blur)
+    scene_box = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GSMSDRWarning)
+        return config.setup(scene_box=scene_box, num_train_data=4)
+
+
 def test_the_gsmsdr_lite_trainer_names_a_gsmsdr_checkpoint_and_its_method(trained_run: TrainedRun, tmp_path):
     """What ``ns-train gsmsdr-lite --load-dir <gsmsdr run>/nerfstudio_models`` does, in this process: the trained
     scene is sharp (no blur field), so the SH degree is what differs; the method comes from the run's config.yml."""

@@ -69,10 +69,12 @@ def built(photo_set, tmp_path_factory) -> dict:
 
 def test_shipped_real_suite_parses() -> None:
     suite = load_suite(find_suite_file("real"))
-    assert [s.name for s in suite.scenes] == ["fern-motion", "fern-sharp"]
-    motion, sharp = (s.real for s in suite.scenes)
+    assert [s.name for s in suite.scenes] == ["fern-motion", "fern-defocus", "fern-sharp"]
+    motion, defocus, sharp = (s.real for s in suite.scenes)
     assert motion.dataset == "llff-fern" and motion.preset == "motion-strong" and sharp.preset == "sharp"
-    assert motion.images == sharp.images and motion.train_downscale == sharp.train_downscale  # the YAML merge key
+    assert defocus.preset == "defocus-strong"
+    assert motion.images == defocus.images == sharp.images  # the YAML merge key
+    assert motion.train_downscale == defocus.train_downscale == sharp.train_downscale
     assert suite.methods == ["plain", "full", "sharp"] and suite.steps == [3000] and len(suite.seeds) >= 3
     assert suite.align_poses
     assert suite.threads == 1 and "registered" in suite.scenes[0].describe()
@@ -85,7 +87,8 @@ def test_real_ablations_share_the_real_suites_shaken_scene() -> None:
     assert [s.name for s in ablations.scenes] == ["fern-motion"]
     assert ablations.scenes[0].real == real.scenes[0].real
     assert ablations.schedule_for(3000) == real.schedule_for(3000) and ablations.align_poses
-    assert {"plain", "full", "full-uncentred", "full-poses", "plain-poses", "full-true"} <= set(ablations.methods)
+    assert {"plain", "full", "full-uncentred", "full-poses", "plain-poses", "full-lens-unknown", "full-true"} <= set(
+        ablations.methods)
     assert fingerprint(ablations, RunKey("fern-motion", "full", 3000, 0)) == fingerprint(
         real, RunKey("fern-motion", "full", 3000, 0))
 

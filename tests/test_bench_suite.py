@@ -114,8 +114,8 @@ def test_user_scene_without_sharp_twin_skips_the_upper_bound(tmp_path: Path) -> 
 
 def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert set(METHODS) == {"plain", "plain-poses", "msd-only", "re-only", "full", "full-poses", "full-uncentred",
-                            "full-true", "full-per-pixel", "-view", "view", "-gaka", "-safm", "-mca", "-rgbd",
-                            "gsmsdr-lite", "sharp"}  # fmt: skip
+                            "full-lens-unknown", "full-true", "full-per-pixel", "-view", "view", "-gaka", "-safm",
+                            "-mca", "-rgbd", "gsmsdr-lite", "sharp"}  # fmt: skip
 
     def model(name: str):
         return METHODS[name].make_config(tmp_path, tmp_path / "out").pipeline.model
@@ -142,6 +142,8 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
                                                                                                          "all")
     assert model("plain-poses").degradation == "sharp"
     assert model("full-uncentred").blur_field.kernel_centre_weight == 0 < model("full").blur_field.kernel_centre_weight
+    assert model("full-lens-unknown").blur_field.thin_lens_for_unknown_kind
+    assert not model("full").blur_field.thin_lens_for_unknown_kind
 
 
 def test_fingerprint_follows_the_resolved_preset(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -481,6 +481,17 @@ def test_sharp_and_unknown_profiles():
     for meta in (None, unknown, entry({})):
         p = DegradationProfile.from_metadata(meta)
         assert p == DegradationProfile.unknown() and p.needs_blur_field and p.mixres_factor is None
+        assert not p.blur_kind_known and not p.known_defocus
+
+
+def test_an_estimate_that_names_both_blurs_leaves_the_kind_unknown():
+    estimated = {"model": "estimated"}
+    both = DegradationProfile.from_metadata(entry({"motion": dict(estimated), "defocus": dict(estimated)}))
+    assert both.motion and both.defocus and not both.blur_kind_known and not both.known_defocus
+    assert DegradationProfile.from_metadata(entry({"defocus": dict(estimated)})).known_defocus
+    recorded = DegradationProfile.from_metadata(entry({"motion": {"model": "trajectory"}, "defocus": {}}))
+    assert recorded.blur_kind_known and recorded.known_defocus
+    assert not DegradationProfile.from_metadata(entry({"motion": dict(estimated)})).known_defocus
 
 
 def test_profile_from_mode():

@@ -219,7 +219,7 @@ def build(metadata, n: int = 4, **config):
         ("auto", records("defocus"), True, True, False, True),
         ("auto", records("sharp"), False, False, False, False),
         ("auto", records("mixres"), False, False, True, False),
-        ("auto", None, True, True, False, True),  # nothing known: blur field, any blur
+        ("auto", None, True, True, False, False),  # nothing known: the blur field models any blur, no lens
         ("sharp", records("motion"), False, False, False, False),
         ("motion", records("sharp"), False, False, False, False),  # images the records call undegraded stay sharp
         ("motion", None, True, True, False, False),
@@ -237,6 +237,28 @@ def test_modules_follow_the_profiles(degradation, degradations, field, depth, re
     groups = model.get_param_groups()
     assert ("blur_field" in groups) == field and ("resolution_model" in groups) == resolution
     assert ("blur_defocus" in groups) == lens
+
+
+def test_a_blur_of_unknown_kind_gets_the_field_and_the_lens_only_when_asked():
+    """Estimated records that found the images blurred but could not tell motion from defocus name both blurs: the
+    field alone models them unless thin_lens_for_unknown_kind; a record naming defocus always gets the lens."""
+    estimated = {"model": "estimated"}
+    unknown_kind = [{"split": "train", "degraded": True, "effects": {"motion": dict(estimated),
+                                                                      "defocus": dict(estimated)}, "source": "estimated"}
+                    for _ in range(4)]  # fmt: skip
+    for degradations, ask, lens in (
+        (unknown_kind, False, False),
+        (unknown_kind, True, True),
+        (records("defocus"), False, True),  # a true record names defocus
+        ([{**r, "effects": {"defocus": dict(estimated)}} for r in unknown_kind], False, True),  # estimated: defocus
+        ([{**r, "effects": {"motion": {}, "defocus": {}}} for r in unknown_kind], False, True),  # both, recorded
+    ):
+        model = build({"degradations": degradations}, blur_field=BlurFieldConfig(thin_lens_for_unknown_kind=ask))
+        assert model.blur_field is not None and model.blur_field.uses_depth
+        assert (model.blur_field.thin_lens is not None) == lens, (degradations[0]["effects"], ask)
+        model.degradation.step(10**6)  # past the field's warm-up
+        plan = model.degradation.plan(0, 1)
+        assert plan.thin_lens == lens and plan.blur_scale is not None
 
 
 @pytest.mark.parametrize("mode", ["full", "view"])
@@ -271,8 +293,8 @@ def test_thin_lens_blurs_defocused_images_only_and_learns(mode):
 @pytest.mark.parametrize("defocus_field", [False, True])
 def test_defocus_only_images_skip_the_field_unless_asked(defocus_field):
     """View 0 defocused only, view 1 motion-blurred and defocused, view 2 unknown (no record): the thin lens alone
-    models view 0 (the field is not evaluated, no mask), the field runs after the lens for views 1 and 2; with
-    ``defocus_field`` the field runs for view 0 too."""
+    models view 0 (the field is not evaluated, no mask), the field runs after the lens for view 1 and alone for view
+    2 (its kind of blur is unknown); with ``defocus_field`` the field runs for view 0 too."""
     both = {"split": "train", "degraded": True, "effects": {"motion": {}, "defocus": {}}}
     unknown = {"split": "train"}
     metadata = {"degradations": records("defocus", 1) + [both, unknown] + records("sharp", 1)}
@@ -297,7 +319,7 @@ def test_defocus_only_images_skip_the_field_unless_asked(defocus_field):
     for handle in handles:
         handle.remove()
     assert [views for views, _, _ in field_calls] == ([(0,)] if defocus_field else []) + [(1,), (2,)]
-    assert lens_calls == [0, 1, 2]
+    assert lens_calls == [0, 1]
 
 
 def test_records_must_match_the_training_images():
@@ -515,3 +537,28 @@ def test_ns_train_on_a_defocus_scene_trains_the_thin_lens(scenes, tmp_path):
     seen = state[prefix + "focus_initialised"]
     assert seen.any() and torch.isfinite(state[prefix + "inverse_focus"]).all()
     assert (state[prefix + "inverse_focus"][seen] > 0).all()  # 1 / depth of something in front of the camera
+
+
+def test_densification_gradient_of_blurred_views_is_scaled_when_asked():
+    """A blurred view's 2D-mean gradients count ``degraded_densify_grad_scale`` times in the densification
+    statistics; a sharp view's count once; 1 (the default) changes nothing."""
+    metadata = {"degradations": records("motion", 1) + records("sharp", 1)}
+
+    def grad2d(scale: float, view: int) -> torch.Tensor:
+        torch.manual_seed(0)
+        model = build(metadata, n=2, blur_field=BlurFieldConfig(warmup=0), degraded_densify_grad_scale=scale)
+        model.train()
+        model.optimizers = None  # no refinement at step 1: the statistics are only accumulated
+        camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)
+        camera.metadata = {"cam_idx": view}
+        model.step = 1
+        model.degradation.step(1)
+        outputs = model.get_outputs(camera)
+        outputs["rgb"].square().mean().backward()
+        model.step_post_backward(1)
+        return model.strategy_state["grad2d"].clone()
+
+    blurred, blurred_x3 = grad2d(1.0, 0), grad2d(3.0, 0)
+    assert float(blurred.sum()) > 0
+    torch.testing.assert_close(blurred_x3, 3.0 * blurred)
+    torch.testing.assert_close(grad2d(3.0, 1), grad2d(1.0, 1))  # the sharp view

@@ -127,6 +127,9 @@ METHODS: Dict[str, MethodSpec] = {
                 feature_downsample=1),  # fmt: skip
         _method("full-uncentred", "GS-MSDR (full), kernels not centred", "gsmsdr",
                 "full without the kernel-centre regulariser (kernel_centre_weight 0)", kernel_centre_weight=0.0),
+        _method("full-lens-unknown", "GS-MSDR (full), thin lens on blur of unknown kind", "gsmsdr",
+                "full with the thin lens before the field on images whose kind of blur is unknown",
+                thin_lens_for_unknown_kind=True),  # fmt: skip
         MethodSpec("full-true", "GS-MSDR (full, true records)", "gsmsdr", (), False,
                    "full with the true degradation records of a real-photo scene (elsewhere the same as full)",
                    true_records=True),  # fmt: skip

@@ -65,6 +65,12 @@ class DegradationPlan(NamedTuple):
         return self.blur_scale is None and self.resolution_factor <= 1.0
 
 
+def _lens_for(profile: DegradationProfile, config: BlurFieldConfig) -> bool:
+    """Whether the thin lens blurs this image before the field: known defocus, or (when the config asks) a blur of
+    unknown kind."""
+    return profile.known_defocus or (profile.defocus and config.thin_lens_for_unknown_kind)
+
+
 def _kernel_centroids(kernels: Union[Tensor, GridKernels]) -> Tensor:
     """[B, 2, h, w] centres of mass of the field's kernels, on its coarse grid when it predicts one (the dense
     kernels are that grid resampled bilinearly, and a centre of mass is linear in the weights)."""
@@ -156,7 +162,7 @@ class DegradationModel(nn.Module):
                 self.blur_field = field_config.setup(
                     num_train_views=num_views,
                     use_depth=any(p.needs_depth for p in self.profiles),
-                    use_thin_lens=any(p.defocus for p in self.profiles),
+                    use_thin_lens=any(_lens_for(p, field_config) for p in self.profiles),
                 )
             self.hpko = field_config.make_scheduler(
                 num_downscales=num_downscales, resolution_schedule=resolution_schedule
@@ -278,7 +284,7 @@ class DegradationModel(nn.Module):
         if profile.needs_resolution_model and self.resolution_model is not None:
             factor = effective_factor(profile.mixres_factor, render_downscale)
         field = self.blur_field
-        thin_lens = profile.defocus and field is not None and field.thin_lens is not None
+        thin_lens = field is not None and field.thin_lens is not None and _lens_for(profile, field.config)
         uses_depth = field is not None and field.uses_depth
         return DegradationPlan(
             view_id, blur_scale, uses_depth, factor, thin_lens, render_downscale, not self.lens_alone(view_id)
@@ -393,7 +399,7 @@ class DegradationModel(nn.Module):
         low = image if d == 1 else F.interpolate(image, size=small, mode="area")
         view_id = nearest_view(self.train_camera_centres, camera_centre)
         view_ids = self.view_ids(view_id, image.device)
-        lens = self.profiles[view_id].defocus and self.blur_field.thin_lens is not None
+        lens = self.blur_field.thin_lens is not None and _lens_for(self.profiles[view_id], self.blur_field.config)
         lens_alone = self.lens_alone(view_id)
         field_depth = self.blur_field.uses_depth and not lens_alone
         low_depth = None

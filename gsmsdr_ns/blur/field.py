@@ -123,10 +123,13 @@ class BlurFieldConfig:
     parameters; the heads model how the blur varies across the image. Trained in the ``blur_view_kernels``
     optimizer group."""
     thin_lens: bool = True
-    """Defocused training images (and images nothing is known about) are first blurred by a learnt thin lens:
-    per-pixel disk kernels whose radius follows the rendered depth, ``aperture * |1/d - 1/d_focus|``, with one
-    aperture and focus per view (:class:`~gsmsdr_ns.blur.defocus.ThinLensDefocus`, optimizer group
-    ``blur_defocus``). Motion-blurred and mixed-resolution images never pay for it."""
+    """Images known to be defocused are first blurred by a learnt thin lens: per-pixel disk kernels whose radius
+    follows the rendered depth, ``aperture * |1/d - 1/d_focus|``, with one aperture and focus per view
+    (:class:`~gsmsdr_ns.blur.defocus.ThinLensDefocus`, optimizer group ``blur_defocus``). Motion-blurred and
+    mixed-resolution images never pay for it."""
+    thin_lens_for_unknown_kind: bool = False
+    """Also put the thin lens before the field on images blurred by an unknown kind of blur (no record, or an
+    estimate that could not tell motion from defocus). Off: the field alone models their blur, whatever it is."""
     defocus_field: bool = False
     """Also run the field (per-pixel and per-view kernels, mask) after the thin lens on images known to be defocused
     only. False: the lens alone models them (the field would compete with it for the same blur); images with motion

@@ -37,6 +37,8 @@ import torch.nn.functional as F
 from kornia.geometry.transform import resize
 from torch import Tensor, nn
 
+from gsmsdr_ns.data.degradation_schema import ESTIMATED_MODEL
+
 __all__ = [
     "DegradationProfile",
     "ProfileMode",
@@ -70,6 +72,11 @@ class DegradationProfile:
     """The records give the image's pose as the exact mid-exposure pose of a simulated shake (``gsmsdr-synth`` /
     ``gsmsdr-degrade`` write ``"reference": "mid_exposure"``). False: the pose was estimated from the photo itself
     (structure-from-motion puts it near the centre of the blur), or nothing is known."""
+
+    blur_kind_known: bool = True
+    """Whether the kind of blur is known. False for an image nothing is known about and for an estimated record
+    that found the image blurred but could not tell motion from defocus (it names both, ``model: estimated``): the
+    blur field alone then models the blur, the thin lens only with ``BlurFieldConfig.thin_lens_for_unknown_kind``."""
 
     def __post_init__(self) -> None:
         f = self.mixres_factor
@@ -108,7 +115,7 @@ class DegradationProfile:
     @classmethod
     def unknown(cls) -> "DegradationProfile":
         """Profile of a training image nothing is known about: any blur, any resolution loss (blur field + depth)."""
-        return cls(motion=True, defocus=True, mixres_factor=None)
+        return cls(motion=True, defocus=True, mixres_factor=None, blur_kind_known=False)
 
     @staticmethod
     def is_known(metadata: Optional[Mapping[str, Any]]) -> bool:
@@ -141,6 +148,10 @@ class DegradationProfile:
             factor = int(mixres.get("factor", 1)) if isinstance(mixres, Mapping) else 1
         upsample = mixres.get("upsample", "bilinear") if isinstance(mixres, Mapping) else "bilinear"
         motion = effects.get("motion")
+        both_estimated = all(
+            isinstance(effects.get(name), Mapping) and effects[name].get("model") == ESTIMATED_MODEL
+            for name in ("motion", "defocus")
+        )
         return cls(
             motion="motion" in effects,
             defocus="defocus" in effects,
@@ -148,7 +159,13 @@ class DegradationProfile:
             noise="noise" in effects,
             mixres_upsample=upsample,
             exact_pose=isinstance(motion, Mapping) and motion.get("reference") == "mid_exposure",
+            blur_kind_known=not both_estimated,
         )
+
+    @property
+    def known_defocus(self) -> bool:
+        """Defocus is known to be (part of) this image's blur: a record names it, not just an unknown kind of blur."""
+        return self.defocus and self.blur_kind_known
 
     @classmethod
     def from_mode(cls, mode: ProfileMode, metadata: Optional[Mapping[str, Any]] = None) -> "DegradationProfile":
@@ -320,7 +337,10 @@ def _profile_kind(profile: DegradationProfile) -> str:
         return "sharp"
     if profile == DegradationProfile.unknown():
         return "unknown"
-    parts = [name for name in ("motion", "defocus") if getattr(profile, name)]
+    if profile.blur_kind_known:
+        parts = [name for name in ("motion", "defocus") if getattr(profile, name)]
+    else:
+        parts = ["blur of unknown kind"]
     if profile.mixres_factor is None:
         parts.append("mixres x?")
     elif profile.mixres_factor > 1:

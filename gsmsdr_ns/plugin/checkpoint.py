@@ -306,6 +306,24 @@ def preset_of(state: Mapping[str, torch.Tensor]) -> Optional[str]:
     return None
 
 
+def check_thin_lens(model_state: Mapping[str, torch.Tensor], checkpoint_state: Mapping[str, torch.Tensor]) -> None:
+    """Raise :class:`CheckpointMismatchError` naming the flag to load with when the checkpoint has a thin lens this
+    model does not build, or the other way round."""
+    key = _BLUR_FIELD + "thin_lens.log_aperture"
+    theirs, ours = key in checkpoint_state, key in model_state
+    if theirs and not ours:
+        raise CheckpointMismatchError(
+            "has a thin lens that this run's config does not build: it was trained with the lens on images blurred "
+            "by an unknown kind of blur, which is now optional (add "
+            "--pipeline.model.blur-field.thin-lens-for-unknown-kind True)"
+        )
+    if ours and not theirs:
+        raise CheckpointMismatchError(
+            "has no thin lens, but this run's config builds one (add --pipeline.model.blur-field.thin-lens False, "
+            "or --pipeline.model.blur-field.thin-lens-for-unknown-kind False if it was set)"
+        )
+
+
 def check_state_dict_shapes(
     model_state: Mapping[str, torch.Tensor],
     checkpoint_state: Mapping[str, torch.Tensor],

@@ -54,7 +54,7 @@ from gsmsdr_ns.blur.profile import (
     ResolutionLossModel,
     training_profiles,
 )
-from gsmsdr_ns.plugin.checkpoint import check_state_dict_shapes
+from gsmsdr_ns.plugin.checkpoint import check_state_dict_shapes, check_thin_lens
 from gsmsdr_ns.plugin.finite_check import NonFiniteLossError, NonFiniteRecorder
 from gsmsdr_ns.plugin.lpips import (
     LPIPSUnavailable,
@@ -97,6 +97,10 @@ class GSMSDRModelConfig(SplatfactoModelConfig):
     SO3xR3``; off by default, as in splatfacto). degraded: the images with a degradation model (blur makes their
     structure-from-motion poses uncertain; sharp images keep theirs, anchor the scene and train as plain splatfacto
     steps); all: every training view (splatfacto)."""
+    degraded_densify_grad_scale: float = 1.0
+    """Densification gradient of a training view rendered through its degradation model, times this (1: as
+    splatfacto): a blur spreads and partly cancels the gradient reaching each Gaussian's 2D mean, so blurred views
+    split fewer Gaussians; above 1 they split as many as sharp views would, at the cost of more Gaussians."""
     finite_check_every: Optional[int] = None
     """Steps between reads of the non-finite check: each step's loss terms and Gaussian parameters are checked on the
     device without waiting for it, and every N steps (and before every checkpoint) training stops with
@@ -271,6 +275,7 @@ class GSMSDRModel(SplatfactoModel):
         A checkpoint of another preset (other widths) raises ``CheckpointMismatchError`` naming both.
         """
         state_dict = remap_legacy_keys(state_dict, "degradation.")
+        check_thin_lens(self.state_dict(), state_dict)
         check_state_dict_shapes(self.state_dict(), state_dict)
         count = state_dict["gauss_params.means"].shape[0]
         for param in self.gauss_params.values():
@@ -299,6 +304,7 @@ class GSMSDRModel(SplatfactoModel):
             return self.get_empty_outputs(full_width, full_height, self.background_color.to(self.device))
 
         plan = self._degradation_plan(camera, downscale)
+        self._degraded_step = self.training and not plan.is_plain
         viewmats = viewmats_from_camera_to_worlds(self._camera_to_worlds(camera, plan))
         with_depth = self.config.output_depth_during_training or not self.training or plan.needs_depth
         render, alpha, self.info = timed(
@@ -372,6 +378,13 @@ class GSMSDRModel(SplatfactoModel):
     def step_post_backward(self, step: int) -> None:
         """splatfacto's densification after the backward pass, marked as the ``densification`` timing stage."""
         with stage("densification"):
+            scale = self.config.degraded_densify_grad_scale
+            means2d = self.info.get("means2d") if isinstance(self.info, dict) else None
+            if scale != 1.0 and getattr(self, "_degraded_step", False) and means2d is not None:
+                for name in ("grad", "absgrad"):
+                    grad = getattr(means2d, name, None)
+                    if grad is not None:
+                        grad.mul_(scale)
             super().step_post_backward(step)
 
     def set_train_camera_centres(self, camera_to_worlds: Tensor) -> None:
