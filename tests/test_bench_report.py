@@ -3,20 +3,13 @@ seeds, and the per-seed gap to plain (paired by seed). Records written by hand i
 
 from __future__ import annotations
 
-import textwrap
 from pathlib import Path
 
 from gsmsdr_ns.bench.report import aggregate, format_markdown
 from gsmsdr_ns.bench.suite_config import load_suite
+from test_bench_suite import TINY_SUITE
 
-SUITE = """\
-name: seeds
-scene_defaults: {width: 64, height: 48, num_views: 10, hold: 5, num_points: 400, seed: 0}
-scenes: [motion]
-methods: [plain, full]
-steps: [20]
-seeds: [0, 1, 2]
-"""
+SUITE = TINY_SUITE.replace("name: tiny", "name: seeds") + "seeds: [0, 1, 2]\n"  # plain and full, 20 steps
 
 # (method, seed) -> PSNR: full gains +1.0, +2.0 and +0.5 over plain at seeds 0, 1, 2
 PSNR = {("plain", 0): 20.0, ("plain", 1): 21.0, ("plain", 2): 22.0,
@@ -32,7 +25,7 @@ def _record(method: str, seed: int) -> dict:
 
 def test_seed_spread_and_paired_gaps(tmp_path: Path) -> None:
     path = tmp_path / "seeds.yaml"
-    path.write_text(textwrap.dedent(SUITE), encoding="utf8")
+    path.write_text(SUITE, encoding="utf8")
     suite = load_suite(path)
     records = [_record(m, s) for (m, s) in PSNR]
     agg = aggregate(records)
