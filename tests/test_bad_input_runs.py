@@ -290,7 +290,7 @@ def test_ns_eval_names_a_truncated_checkpoint(trained_run: TrainedRun, tmp_path:
 
 def _model(make_config, **overrides):
     config = make_config().pipeline.model
-    config = dataclasses.replace(config, degradation="motion", num_random=50, **overrides)
+    config = dataclasses.replace(config, **{"degradation": "motion", "num_random": 50, **overrides})
     scene_box = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", GSMSDRWarning)
@@ -317,24 +317,18 @@ def test_a_gsmsdr_checkpoint_in_gsmsdr_lite_names_the_blur_field_widths():
 
 def test_a_checkpoint_with_a_lens_for_unknown_blur_names_the_flag_to_load_it():
     """Before the thin lens became optional on images of unknown blur, such scenes' checkpoints carry one."""
-    with_lens = make_unknown_config(lens=True)
-    without = make_unknown_config(lens=False)
-    with pytest.raises(CheckpointMismatchError, match=r"has a thin lens .*blur-field.thin-lens-for-unknown-kind True\)"):
+
+    def nothing_known(lens: bool):  # 4 training views without records, with or without the lens on them
+        blur = dataclasses.replace(gsmsdr_trainer_config().pipeline.model.blur_field, thin_lens_for_unknown_kind=lens)
+        return _model(gsmsdr_trainer_config, degradation="auto", blur_field=blur)
+
+    with_lens, without = nothing_known(lens=True), nothing_known(lens=False)
+    with pytest.raises(CheckpointMismatchError,
+                       match=r"has a thin lens .*blur-field.thin-lens-for-unknown-kind True\)"):  # fmt: skip
         without.load_state_dict(with_lens.state_dict())
     with pytest.raises(CheckpointMismatchError, match=r"has no thin lens, but .*blur-field.thin-lens False"):
         with_lens.load_state_dict(without.state_dict())
-    without.load_state_dict(make_unknown_config(lens=False).state_dict())  # the same config loads
-
-
-def make_unknown_config(lens: bool):
-    """A gsmsdr model on 4 training views nothing is known about, with or without the thin lens on them."""
-    config = gsmsdr_trainer_config().pipeline.model
-    blur = dataclasses.replace(config.blur_field, thin_lens_for_unknown_kind=lens)
-    config = dataclasses.replace(config, degradation="auto", num_random=50, blur_field=blur)
-    scene_box = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", GSMSDRWarning)
-        return config.setup(scene_box=scene_box, num_train_data=4)
+    without.load_state_dict(nothing_known(lens=False).state_dict())  # the same config loads
 
 
 def test_the_gsmsdr_lite_trainer_names_a_gsmsdr_checkpoint_and_its_method(trained_run: TrainedRun, tmp_path):

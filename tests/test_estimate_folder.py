@@ -26,7 +26,8 @@ def _scene(root: Path) -> Path:
         if name in SHAKEN:
             write_image(scene / "images" / name, shaken_photo(scene / "images" / name, 16.0, samples=33))
         with Image.open(scene / "images" / name) as image:
-            image.resize((image.width // 2, image.height // 2), Image.Resampling.LANCZOS).save(scene / "images_2" / name)
+            half = image.resize((image.width // 2, image.height // 2), Image.Resampling.LANCZOS)
+            half.save(scene / "images_2" / name)
     return scene
 
 

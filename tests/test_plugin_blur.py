@@ -243,9 +243,8 @@ def test_a_blur_of_unknown_kind_gets_the_field_and_the_lens_only_when_asked():
     """Estimated records that found the images blurred but could not tell motion from defocus name both blurs: the
     field alone models them unless thin_lens_for_unknown_kind; a record naming defocus always gets the lens."""
     estimated = {"model": "estimated"}
-    unknown_kind = [{"split": "train", "degraded": True, "effects": {"motion": dict(estimated),
-                                                                      "defocus": dict(estimated)}, "source": "estimated"}
-                    for _ in range(4)]  # fmt: skip
+    both = {"motion": dict(estimated), "defocus": dict(estimated)}
+    unknown_kind = [{"split": "train", "degraded": True, "effects": both, "source": "estimated"} for _ in range(4)]
     for degradations, ask, lens in (
         (unknown_kind, False, False),
         (unknown_kind, True, True),

@@ -27,7 +27,7 @@ import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, Optional, Sequence
 
 import numpy as np
 
@@ -124,7 +124,8 @@ def resolve_photos(spec: RealSceneSpec, anchors: Sequence[Path] = ()) -> Path:
     """The folder of ``spec``'s photos: ``dataset`` as a path, else under $GSMSDR_DATA_DIR, else ``shared/data/``
     in a parent of the ``anchors`` (the suite file, the working directory); InputError naming the places looked."""
     direct = Path(spec.dataset).expanduser()
-    candidates = [direct] if direct.is_absolute() else [root / spec.dataset for root in photo_set_roots([*anchors, Path.cwd()])]
+    roots = photo_set_roots([*anchors, Path.cwd()])
+    candidates = [direct] if direct.is_absolute() else [root / spec.dataset for root in roots]
     for folder in candidates:
         if (folder / spec.images).is_dir():
             return folder / spec.images

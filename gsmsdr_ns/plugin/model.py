@@ -179,6 +179,7 @@ class GSMSDRModel(SplatfactoModel):
         self._populate_degradation_modules()
         self._nonfinite = NonFiniteRecorder()
         self._train_image_sizes: Dict[int, Tuple[int, int]] = {}  # cam_idx -> full (width, height)
+        self._degraded_step = False  # the last training render went through a degradation model
 
     def _populate_degradation_modules(self) -> None:
         """``degradation``: the :class:`DegradationModel` of the training images (one profile each, from the
@@ -379,10 +380,9 @@ class GSMSDRModel(SplatfactoModel):
         """splatfacto's densification after the backward pass, marked as the ``densification`` timing stage."""
         with stage("densification"):
             scale = self.config.degraded_densify_grad_scale
-            means2d = self.info.get("means2d") if isinstance(self.info, dict) else None
-            if scale != 1.0 and getattr(self, "_degraded_step", False) and means2d is not None:
-                for name in ("grad", "absgrad"):
-                    grad = getattr(means2d, name, None)
+            if scale != 1.0 and self._degraded_step:
+                means2d = self.info["means2d"]
+                for grad in (means2d.grad, getattr(means2d, "absgrad", None)):
                     if grad is not None:
                         grad.mul_(scale)
             super().step_post_backward(step)
