@@ -331,6 +331,19 @@ def test_a_checkpoint_with_a_lens_for_unknown_blur_names_the_flag_to_load_it():
     without.load_state_dict(nothing_known(lens=False).state_dict())  # the same config loads
 
 
+def test_a_checkpoint_with_or_without_camera_shake_paths_names_the_flag_to_load_it():
+    def motion_model(shake: bool):  # 4 motion-blurred training views, with or without rotation paths
+        blur = dataclasses.replace(gsmsdr_trainer_config().pipeline.model.blur_field, camera_shake=shake)
+        return _model(gsmsdr_trainer_config, degradation="motion", blur_field=blur)
+
+    with_paths, without = motion_model(shake=True), motion_model(shake=False)
+    with pytest.raises(CheckpointMismatchError, match=r"has camera shake paths .*blur-field.camera-shake True\)"):
+        without.load_state_dict(with_paths.state_dict())
+    with pytest.raises(CheckpointMismatchError, match=r"has no camera shake paths, .*blur-field.camera-shake False"):
+        with_paths.load_state_dict(without.state_dict())
+    with_paths.load_state_dict(motion_model(shake=True).state_dict())  # the same config loads
+
+
 def test_the_gsmsdr_lite_trainer_names_a_gsmsdr_checkpoint_and_its_method(trained_run: TrainedRun, tmp_path):
     """What ``ns-train gsmsdr-lite --load-dir <gsmsdr run>/nerfstudio_models`` does, in this process: the trained
     scene is sharp (no blur field), so the SH degree is what differs; the method comes from the run's config.yml."""

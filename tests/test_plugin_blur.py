@@ -355,6 +355,73 @@ def test_hpko_scale_follows_the_current_render_downscale():
     assert model.hpko_state["kernel_size"] == 17
 
 
+def _shift_left_two_pixels(model) -> None:
+    """Every view's kernel (mode view, one 5 x 5 scale) becomes a delta two columns right of centre: the blurred
+    image at column x is the render's column x + 2."""
+    with torch.no_grad():
+        logits = model.blur_field.heads.view_logits["1"]
+        logits.fill_(-40.0)
+        logits[:, 2 * 5 + 4] = 40.0
+
+
+@pytest.mark.parametrize("margin", [True, False])
+def test_blurred_views_render_a_margin_the_blur_reads_then_crop_it(margin):
+    """With ``render_margin`` a blurred training view is rendered K // 2 pixels beyond every border and cropped after
+    blurring: a kernel that shifts the image fills the last columns with what lies just outside the frame (the
+    render of a camera 2 * 2 pixels wider and taller), not with the replicated border."""
+    field = BlurFieldConfig(mode="view", kernel_sizes=(5,), warmup=0, progressive=False, linear_light=False,
+                            render_margin=margin)  # fmt: skip
+    model = build({"degradations": records("motion")}, num_downscales=0, background_color="white", blur_field=field)
+    _shift_left_two_pixels(model)
+    c2w = look_from([0.8, 0.3, 0.35])  # close: the Gaussians fill the frame and run past its borders
+    camera = make_camera(c2w, width=64, height=48)
+    camera.metadata = {"cam_idx": 0}
+    model.train()
+    model.optimizers = None  # the densification strategy's pre-backward step reads it
+    model.degradation.step(10)
+    outputs = model.get_outputs(camera)
+    assert outputs["rgb"].shape == outputs["rgb_sharp"].shape == (48, 64, 3)
+    assert outputs["accumulation"].shape == (48, 64, 1) and outputs["blur_mask"].shape == (48, 64, 1)
+    model.eval()
+    with torch.no_grad():
+        wider = model.get_outputs(make_camera(c2w, width=68, height=52))["rgb"]  # principal point moves by 2 too
+        sharp = model.get_outputs(make_camera(c2w, width=64, height=48))["rgb"]
+    shifted = wider[2:-2, 4:]
+    assert (shifted[:, -1] - sharp[:, -1]).abs().max() > 0.02  # the frame's edge is not what lies past it
+    assert torch.allclose(outputs["rgb_sharp"], sharp, atol=4e-3)  # other image size, other tiles: rounding
+    if margin:
+        assert torch.allclose(outputs["rgb"], shifted, atol=4e-3)
+    else:  # replicate padding: the last two columns repeat the render's last column
+        assert torch.allclose(outputs["rgb"][:, :-2], shifted[:, :-2], atol=4e-3)
+        assert torch.allclose(outputs["rgb"][:, -2:], sharp[:, -1:].expand(-1, 2, -1), atol=1e-3)
+
+
+def test_camera_shake_runs_on_views_that_may_be_shaken_and_learns():
+    """Views: motion, defocus, sharp, blur of unknown kind. With ``camera_shake`` the rotation paths are built, run
+    on the motion and unknown-kind views only (before the field), and the drawn view's path gets the gradient."""
+    estimated = {"model": "estimated"}
+    recs = records("motion", 1) + records("defocus", 1) + records("sharp", 1)
+    recs.append({"split": "train", "degraded": True, "source": "estimated",
+                 "effects": {"motion": dict(estimated), "defocus": dict(estimated)}})  # fmt: skip
+    model = build({"degradations": recs}, num_downscales=0, blur_field=BlurFieldConfig(camera_shake=True, warmup=0))
+    shake = model.degradation.camera_shake
+    assert shake is not None and model.get_param_groups()["blur_shake"] == [shake.coefficients]
+    model.degradation.step(10)
+    assert [model.degradation.plan(i, 1).shake for i in range(4)] == [True, False, False, True]
+    model.train()
+    model.optimizers = None
+    camera = make_camera(look_from([2.0, 0.5, 1.0]), width=32, height=24)
+    camera.metadata = {"cam_idx": 3}
+    outputs = model.get_outputs(camera)
+    assert outputs["rgb"].shape == (24, 32, 3)
+    outputs["rgb"].sum().backward()
+    grad = shake.coefficients.grad
+    assert grad is not None and float(grad[3].abs().sum()) > 0 and torch.equal(grad[:3], torch.zeros_like(grad[:3]))
+    assert build({"degradations": recs}).degradation.camera_shake is None  # off unless asked
+    no_motion = build({"degradations": records("defocus")}, blur_field=BlurFieldConfig(camera_shake=True))
+    assert no_motion.degradation.camera_shake is None and "blur_shake" not in no_motion.get_param_groups()
+
+
 def test_warm_up_follows_the_step_the_callback_gave():
     """The blur field is skipped until the step given to ``DegradationModel.step`` reaches the warm-up."""
     model = build({"degradations": records("motion")}, blur_field=BlurFieldConfig(warmup=3))

@@ -130,6 +130,12 @@ METHODS: Dict[str, MethodSpec] = {
         _method("full-lens-unknown", "GS-MSDR (full), thin lens on blur of unknown kind", "gsmsdr",
                 "full with the thin lens before the field on images whose kind of blur is unknown",
                 thin_lens_for_unknown_kind=True),  # fmt: skip
+        _method("full-margin", "GS-MSDR (full), render margin", "gsmsdr",
+                "full rendering the kernel's half-width beyond every border of a blurred view (render_margin)",
+                render_margin=True),  # fmt: skip
+        _method("full-shake", "GS-MSDR (full), camera shake paths", "gsmsdr",
+                "full-margin with a learnt camera rotation path before the field on views that may be shaken",
+                render_margin=True, camera_shake=True),  # fmt: skip
         MethodSpec("full-true", "GS-MSDR (full, true records)", "gsmsdr", (), False,
                    "full with the true degradation records of a real-photo scene (elsewhere the same as full)",
                    true_records=True),  # fmt: skip

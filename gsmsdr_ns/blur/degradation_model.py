@@ -27,10 +27,11 @@ from gsmsdr_ns.blur.kernels import kernel_centroids
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo
 from gsmsdr_ns.blur.maan import host_checked_view_ids
 from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
+from gsmsdr_ns.blur.shake import CameraShake
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, describe_profiles, effective_factor
 from gsmsdr_ns.timing_hooks import timed
 
-__all__ = ["DegradationModel", "DegradationPlan", "LEGACY_KEY_PREFIXES", "remap_legacy_keys"]
+__all__ = ["DegradationModel", "DegradationPlan", "crop_margin", "LEGACY_KEY_PREFIXES", "remap_legacy_keys"]
 
 LEGACY_KEY_PREFIXES = ("blur_field.", "resolution_model.", "train_camera_centres")
 """State-dict keys the degradation modules had when they were attributes of the nerfstudio model itself."""
@@ -54,6 +55,11 @@ class DegradationPlan(NamedTuple):
     blur_field: bool = True
     """The field's kernels run (after the lens, if any); False: a defocused image is modelled by the thin lens
     alone."""
+    shake: bool = False
+    """The render is first blurred along the view's learnt camera rotation path (the image may be shaken)."""
+    margin: int = 0
+    """Pixels the render reaches beyond each border of the image (:meth:`DegradationModel.forward` blurs the
+    enlarged render, then crops them)."""
 
     @property
     def needs_depth(self) -> bool:
@@ -63,6 +69,14 @@ class DegradationPlan(NamedTuple):
     def is_plain(self) -> bool:
         """Nothing to simulate: outputs["rgb"] is the sharp render."""
         return self.blur_scale is None and self.resolution_factor <= 1.0
+
+
+def crop_margin(x: Tensor, margin: int, dims: Tuple[int, int] = (-2, -1)) -> Tensor:
+    """``x`` without ``margin`` entries at both ends of the two image dimensions ``dims`` (rows, columns)."""
+    if margin <= 0:
+        return x
+    x = x.narrow(dims[0], margin, x.shape[dims[0]] - 2 * margin)
+    return x.narrow(dims[1], margin, x.shape[dims[1]] - 2 * margin)
 
 
 def _lens_for(profile: DegradationProfile, config: BlurFieldConfig) -> bool:
@@ -169,6 +183,9 @@ class DegradationModel(nn.Module):
             )
             self.hpko_state = self.hpko.initialize_state()
             self.register_buffer("train_camera_centres", torch.full((num_views, 3), float("nan")))
+        self.camera_shake: Optional[CameraShake] = None
+        if self.blur_field is not None and field_config.camera_shake and any(p.motion for p in self.profiles):
+            self.camera_shake = CameraShake(num_views, field_config.shake_samples)
         mixres = [p for p in self.profiles if p.needs_resolution_model]
         if mixres:
             upsample = Counter(p.mixres_upsample for p in mixres).most_common(1)[0][0]
@@ -220,6 +237,8 @@ class DegradationModel(nn.Module):
         ``resolution_model`` for the modules that exist."""
         if self.blur_field is not None:
             self.blur_field.get_param_groups(groups)
+        if self.camera_shake is not None:
+            groups["blur_shake"] = list(self.camera_shake.parameters())
         if self.resolution_model is not None:
             groups["resolution_model"] = list(self.resolution_model.parameters())
         return groups
@@ -286,26 +305,37 @@ class DegradationModel(nn.Module):
         field = self.blur_field
         thin_lens = field is not None and field.thin_lens is not None and _lens_for(profile, field.config)
         uses_depth = field is not None and field.uses_depth
+        margin = blur_scale.kernel_size // 2 if blur_scale is not None and field.config.render_margin else 0
+        shake = blur_scale is not None and self.camera_shake is not None and profile.motion
         return DegradationPlan(
-            view_id, blur_scale, uses_depth, factor, thin_lens, render_downscale, not self.lens_alone(view_id)
+            view_id, blur_scale, uses_depth, factor, thin_lens, render_downscale, not self.lens_alone(view_id),
+            shake, margin,
         )
 
-    def forward(self, rgb: Tensor, depth: Optional[Tensor], plan: DegradationPlan) -> Dict[str, Tensor]:
+    def forward(
+        self, rgb: Tensor, depth: Optional[Tensor], plan: DegradationPlan, K: Optional[Tensor] = None
+    ) -> Dict[str, Tensor]:
         """Pass the sharp render through this image's degradation models, in the order a camera degrades a photo:
         blur (thin lens, then blur field), then resolution loss (resolution model).
 
         Args:
-            rgb: [H, W, 3] sharp render.
-            depth: [H, W, 1] expected depth, or None when the plan does not need it.
+            rgb: [H + 2 m, W + 2 m, 3] sharp render, m = ``plan.margin``.
+            depth: [H + 2 m, W + 2 m, 1] expected depth, or None when the plan does not need it.
             plan: from :meth:`plan`.
+            K: [3, 3] intrinsics of the render (margin included); needed when ``plan.shake``.
         Returns:
-            ``rgb`` [H, W, 3] (the simulated degraded image), ``rgb_sharp`` (the input) and, when the blur field
-            ran, ``blur_mask`` [H, W, 1].
+            ``rgb`` [H, W, 3] (the simulated degraded image), ``rgb_sharp`` (the input without its margin) and, when
+            the blur field ran, ``blur_mask`` [H, W, 1].
         """
         image = _bchw(rgb)
         assert plan.view_id is not None
         view_ids = self.view_ids(plan.view_id, image.device)
-        outputs: Dict[str, Tensor] = {"rgb_sharp": rgb}
+        outputs: Dict[str, Tensor] = {"rgb_sharp": crop_margin(rgb, plan.margin, dims=(0, 1))}
+        if plan.shake:
+            assert self.camera_shake is not None and self.blur_field is not None and K is not None
+            centred = not self.profiles[plan.view_id].exact_pose
+            linear_light = self.blur_field.config.linear_light
+            image = timed("kernels", self.camera_shake, image, K, view_ids, centred, linear_light)
         if plan.blur_scale is not None:
             assert self.blur_field is not None
             stages = self._lens_then_field(
@@ -324,9 +354,10 @@ class DegradationModel(nn.Module):
                 assert stages.mask is not None
                 blurred = timed("kernels", BlurField.blur, image, stages.kernels, self.blur_field.config.linear_light)
                 image = stages.mask * blurred + (1.0 - stages.mask) * image  # BlurField.degrade
-                outputs["blur_mask"] = _hwc(stages.mask)
+                outputs["blur_mask"] = _hwc(crop_margin(stages.mask, plan.margin))
                 if self.blur_field.config.kernel_centre_weight > 0 and not self.profiles[plan.view_id].exact_pose:
                     outputs["blur_kernel_centroids"] = timed("blur_field", _kernel_centroids, stages.kernels)
+        image = crop_margin(image, plan.margin)
         if plan.resolution_factor > 1.0:
             assert self.resolution_model is not None
             image = timed("kernels", self.resolution_model, image, [plan.resolution_factor], view_ids)

@@ -161,6 +161,18 @@ class BlurFieldConfig:
     near the centre of its blur; a kernel free to shift lets the sharp scene drift off that pose by a different
     amount in every view). Images whose records give the exact mid-exposure pose of a simulated shake (generated
     and ``gsmsdr-degrade`` scenes) are not centred. 0: off."""
+    camera_shake: bool = False
+    """Images that may be motion-blurred (records name motion, or the kind of blur is unknown) are first blurred
+    along a learnt camera rotation path (:class:`~gsmsdr_ns.blur.shake.CameraShake`, optimizer group
+    ``blur_shake``), then by the field: a turning camera blurs every pixel along its own path, which roll makes
+    vary across the image. Off by default: on the real-photo suite's shaken fern it did not beat the field alone
+    (docs/design.md)."""
+    shake_samples: int = 9
+    """Time samples of the exposure the render is warped to along the rotation path."""
+    render_margin: bool = False
+    """Render the current kernel's half-width beyond every border of a blurred image and crop after blurring: a
+    photo's border pixels are blurred with what lay just outside the frame, which replicate padding cannot know.
+    Off by default: on the real-photo suite's shaken fern it moved PSNR within the seed noise (docs/design.md)."""
     warmup: int = 250
     """The blur field is skipped for the first ``warmup`` steps (BAGS: 250)."""
     switch_steps: Optional[Tuple[int, ...]] = None

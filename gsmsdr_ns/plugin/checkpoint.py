@@ -324,6 +324,23 @@ def check_thin_lens(model_state: Mapping[str, torch.Tensor], checkpoint_state: M
         )
 
 
+def check_camera_shake(model_state: Mapping[str, torch.Tensor], checkpoint_state: Mapping[str, torch.Tensor]) -> None:
+    """Raise :class:`CheckpointMismatchError` naming the flag to load with when the checkpoint has learnt camera
+    shake paths this model does not build, or the other way round."""
+    key = "degradation.camera_shake.coefficients"
+    theirs, ours = key in checkpoint_state, key in model_state
+    if theirs and not ours:
+        raise CheckpointMismatchError(
+            "has camera shake paths that this run's config does not build (add "
+            "--pipeline.model.blur-field.camera-shake True)"
+        )
+    if ours and not theirs:
+        raise CheckpointMismatchError(
+            "has no camera shake paths, but this run's config builds them (add "
+            "--pipeline.model.blur-field.camera-shake False)"
+        )
+
+
 def check_state_dict_shapes(
     model_state: Mapping[str, torch.Tensor],
     checkpoint_state: Mapping[str, torch.Tensor],

@@ -71,6 +71,7 @@ def gsmsdr_optimizers(max_steps: int = MAX_STEPS) -> dict:
         "blur_field": {"optimizer": _adam(1e-4, eps=1e-8), "scheduler": None},
         "blur_view_kernels": {"optimizer": _adam(3e-2, eps=1e-8), "scheduler": None},
         "blur_defocus": {"optimizer": _adam(1e-2, eps=1e-8), "scheduler": None},
+        "blur_shake": {"optimizer": _adam(1e-1, eps=1e-8), "scheduler": None},
         "resolution_model": {"optimizer": _adam(1e-4, eps=1e-8), "scheduler": None},
     }
 

@@ -45,6 +45,7 @@ from torch import Tensor
 from gsmsdr_ns.blur.degradation_model import (
     DegradationModel,
     DegradationPlan,
+    crop_margin,
     remap_legacy_keys,
 )
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
@@ -54,7 +55,7 @@ from gsmsdr_ns.blur.profile import (
     ResolutionLossModel,
     training_profiles,
 )
-from gsmsdr_ns.plugin.checkpoint import check_state_dict_shapes, check_thin_lens
+from gsmsdr_ns.plugin.checkpoint import check_camera_shake, check_state_dict_shapes, check_thin_lens
 from gsmsdr_ns.plugin.finite_check import NonFiniteLossError, NonFiniteRecorder
 from gsmsdr_ns.plugin.lpips import (
     LPIPSUnavailable,
@@ -277,6 +278,7 @@ class GSMSDRModel(SplatfactoModel):
         """
         state_dict = remap_legacy_keys(state_dict, "degradation.")
         check_thin_lens(self.state_dict(), state_dict)
+        check_camera_shake(self.state_dict(), state_dict)
         check_state_dict_shapes(self.state_dict(), state_dict)
         count = state_dict["gauss_params.means"].shape[0]
         for param in self.gauss_params.values():
@@ -306,6 +308,10 @@ class GSMSDRModel(SplatfactoModel):
 
         plan = self._degradation_plan(camera, downscale)
         self._degraded_step = self.training and not plan.is_plain
+        if plan.margin:  # the blur reads what lies just outside the frame: render it, crop after blurring
+            K = K.clone()
+            K[:, :2, 2] += plan.margin
+            width, height = width + 2 * plan.margin, height + 2 * plan.margin
         viewmats = viewmats_from_camera_to_worlds(self._camera_to_worlds(camera, plan))
         with_depth = self.config.output_depth_during_training or not self.training or plan.needs_depth
         render, alpha, self.info = timed(
@@ -331,7 +337,11 @@ class GSMSDRModel(SplatfactoModel):
             "background": background,
         }
         if not plan.is_plain:
-            outputs.update(self.degradation(outputs["rgb"], depth, plan))
+            outputs.update(self.degradation(outputs["rgb"], depth, plan, K[0]))
+            if plan.margin:
+                for key in ("accumulation", "depth"):
+                    if outputs[key] is not None:
+                        outputs[key] = crop_margin(outputs[key], plan.margin, dims=(0, 1))
         elif not self.training and self.config.viewer_blur_outputs and self.blur_field is not None:
             centre = camera.camera_to_worlds.reshape(-1, 3, 4)[0, :3, 3]
             outputs.update(self.degradation.preview(outputs["rgb"], depth, centre))

@@ -1,0 +1,118 @@
+"""Camera shake as a learnt rotation path per training view: the sharp render warped along it and averaged.
+
+A handheld photo's motion blur is mostly the camera turning during the exposure. A camera rotation R moves every
+pixel by the homography ``K R K^-1`` whatever its depth, so the blurred photo is the average of the sharp image
+warped by the homographies of the rotations the camera went through (Whyte et al., "Non-uniform deblurring for
+shaken images"). Roll makes that blur vary across the image, which one kernel per view cannot represent.
+
+Each view's path is a cubic polynomial in the exposure time ``tau`` in [-1/2, 1/2] per rotation axis::
+
+    r(tau) = sum_k c_k b_k(tau),   b = (tau, tau^2, tau^3)            (the path passes through the pose at tau 0)
+                                   b = (tau, tau^2 - 1/12, tau^3)     (zero mean: the pose is the path's centre)
+
+The first basis fits poses known to be the mid-exposure pose (simulated shake); the second fits poses estimated
+from the blurred photo itself, which structure-from-motion puts near the centre of the blur. Pure functions below,
+one module (:class:`CameraShake`) holding the coefficients.
+"""
+
+from __future__ import annotations
+
+import torch
+from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+from kornia.geometry.transform import warp_perspective
+from torch import Tensor, nn
+
+__all__ = ["CameraShake", "apply_camera_shake", "rotation_homographies", "shake_basis"]
+
+RADIANS_PER_UNIT = 0.01
+"""The coefficients are stored in hundredths of a radian: Adam's steps (about the learning rate) then move a path
+by a fraction of a pixel at the focal lengths of photos."""
+
+
+def shake_basis(num_samples: int, centred: bool, dtype: torch.dtype = torch.float32) -> Tensor:
+    """Polynomial basis of a path sampled at the midpoints of ``num_samples`` equal time bins -> [T, 3].
+
+    ``centred``: columns of zero mean over the samples (the pose is the path's centre); else each column is 0 at
+    mid-exposure (the pose lies on the path).
+    """
+    if num_samples < 2:
+        raise ValueError(f"a shake path needs at least 2 samples, got {num_samples}")
+    tau = (torch.arange(num_samples, dtype=torch.float64) + 0.5) / num_samples - 0.5
+    basis = torch.stack([tau, tau**2, tau**3], dim=1)
+    if centred:
+        basis = basis - basis.mean(dim=0, keepdim=True)
+    return basis.to(dtype)
+
+
+def rotation_homographies(K: Tensor, rotvecs: Tensor) -> Tensor:
+    """Pixel homographies of camera rotations: ``K_i R(r) K_i^-1`` in pixel-index coordinates (pixel centres at
+    integers), ready for kornia's warps.
+
+    Args:
+        K: [3, 3] pinhole intrinsics, principal point in the pixel-edge convention (centres at i + 0.5).
+        rotvecs: [T, 3] rotation vectors (axis * angle, radians) in the camera's frame.
+    Returns:
+        [T, 3, 3].
+    """
+    shift = torch.eye(3, dtype=K.dtype, device=K.device)
+    shift[:2, 2] = -0.5
+    K_index = shift @ K
+    R = axis_angle_to_rotation_matrix(rotvecs.to(K.dtype))
+    return K_index @ R @ torch.linalg.inv(K_index)
+
+
+def apply_camera_shake(image: Tensor, homographies: Tensor, linear_light: bool = True) -> Tensor:
+    """Average of ``image`` warped by each homography: what a sensor records while the view moves through them.
+
+    Args:
+        image: [1, C, H, W]; sRGB-encoded in [0, 1] when ``linear_light``.
+        homographies: [T, 3, 3] pixel-index homographies (see :func:`rotation_homographies`).
+        linear_light: average linear light (decode, warp and average, re-encode).
+    Returns:
+        [1, C, H, W]. Pixels mapped from outside the image read its border.
+    """
+    if image.dim() != 4 or image.shape[0] != 1:
+        raise ValueError(f"image must be [1, C, H, W], got {list(image.shape)}")
+    if homographies.dim() != 3 or homographies.shape[1:] != (3, 3):
+        raise ValueError(f"homographies must be [T, 3, 3], got {list(homographies.shape)}")
+    source = rgb_to_linear_rgb(image) if linear_light else image
+    T = homographies.shape[0]
+    _, C, H, W = source.shape
+    warped = warp_perspective(
+        source.expand(T, C, H, W), homographies.to(source.dtype), (H, W), padding_mode="border", align_corners=True
+    )
+    out = warped.mean(dim=0, keepdim=True)
+    return linear_rgb_to_rgb(out) if linear_light else out
+
+
+class CameraShake(nn.Module):
+    """One learnt rotation path per training view (cubic in time, see the module docstring).
+
+    Args:
+        num_views: training views.
+        num_samples: time samples of the exposure the render is warped to.
+        initial_radians: standard deviation of the random initial coefficients. A path of exactly zero gets no
+            gradient (blur is even in the path), so each starts as a small random curve.
+        seed: seed of the initial coefficients' generator (the global random stream is left alone).
+    """
+
+    def __init__(self, num_views: int, num_samples: int = 9, initial_radians: float = 1e-3, seed: int = 0) -> None:
+        super().__init__()
+        if num_views < 1:
+            raise ValueError(f"num_views must be >= 1, got {num_views}")
+        self.num_samples = int(num_samples)
+        generator = torch.Generator().manual_seed(seed)
+        init = torch.randn(num_views, 3, 3, generator=generator) * (initial_radians / RADIANS_PER_UNIT)
+        self.coefficients = nn.Parameter(init)  # [V, basis, axis]
+        self.register_buffer("basis_through_pose", shake_basis(self.num_samples, centred=False), persistent=False)
+        self.register_buffer("basis_centred", shake_basis(self.num_samples, centred=True), persistent=False)
+
+    def rotvecs(self, view_ids: Tensor, centred: bool) -> Tensor:
+        """Rotation vectors of view ``view_ids[0]``'s path -> [T, 3] (radians)."""
+        basis = self.basis_centred if centred else self.basis_through_pose
+        return RADIANS_PER_UNIT * (basis @ self.coefficients[view_ids[0]])
+
+    def forward(self, image: Tensor, K: Tensor, view_ids: Tensor, centred: bool, linear_light: bool = True) -> Tensor:
+        """The render ``image`` [1, C, H, W] (intrinsics ``K`` [3, 3]) blurred along view ``view_ids`` [1]'s path."""
+        return apply_camera_shake(image, rotation_homographies(K, self.rotvecs(view_ids, centred)), linear_light)

@@ -1,0 +1,113 @@
+"""Camera shake as a learnt rotation path (gsmsdr_ns.blur.shake): basis, homographies, the warp average, learning.
+
+Pure functions on small tensors; no nerfstudio.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from gsmsdr_ns.blur.shake import CameraShake, apply_camera_shake, rotation_homographies, shake_basis
+
+K = torch.tensor([[60.0, 0.0, 32.0], [0.0, 60.0, 24.0], [0.0, 0.0, 1.0]])  # 64 x 48, principal point at the centre
+
+
+def textured(seed: int = 0, height: int = 48, width: int = 64) -> torch.Tensor:
+    """[1, 3, H, W] smooth random texture in [0, 1]."""
+    gen = torch.Generator().manual_seed(seed)
+    coarse = torch.rand(1, 3, height // 4, width // 4, generator=gen)
+    return F.interpolate(coarse, size=(height, width), mode="bilinear", align_corners=False)
+
+
+def apply_h(H: torch.Tensor, xy) -> torch.Tensor:
+    p = H @ torch.tensor([xy[0], xy[1], 1.0], dtype=H.dtype)
+    return p[:2] / p[2]
+
+
+@pytest.mark.parametrize("n", [2, 5, 9])
+def test_basis_centred_has_zero_mean_and_the_other_passes_through_the_pose(n):
+    centred, through = shake_basis(n, centred=True), shake_basis(n, centred=False)
+    assert centred.shape == through.shape == (n, 3)
+    assert torch.allclose(centred.mean(dim=0), torch.zeros(3), atol=1e-7)
+    tau = (torch.arange(n) + 0.5) / n - 0.5
+    assert torch.allclose(through[:, 0], tau) and torch.allclose(through[:, 2], tau**3)
+    if n % 2:  # the middle sample is mid-exposure: no rotation there
+        assert torch.equal(through[n // 2], torch.zeros(3))
+    with pytest.raises(ValueError, match="at least 2 samples"):
+        shake_basis(1, centred=True)
+
+
+def test_rotation_homographies_move_pixels_as_a_turning_camera_does():
+    """Identity for no rotation; a turn about the camera's y axis by a moves the principal point by f tan(a)
+    horizontally; a roll keeps the principal point and moves the corners (blur that varies across the image)."""
+    centre = (31.5, 23.5)  # the principal point in pixel-index coordinates (pixel centres at integers)
+    H = rotation_homographies(K, torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.05, 0.0], [0.0, 0.0, 0.05]]))
+    assert torch.allclose(H[0], torch.eye(3), atol=1e-5)
+    moved = apply_h(H[1], centre)
+    assert abs(abs(float(moved[0]) - centre[0]) - 60.0 * math.tan(0.05)) < 1e-3
+    assert abs(float(moved[1]) - centre[1]) < 1e-4
+    assert torch.allclose(apply_h(H[2], centre), torch.tensor(centre), atol=1e-4)
+    corner = apply_h(H[2], (0.0, 0.0)) - torch.tensor([0.0, 0.0])
+    assert float(corner.norm()) == pytest.approx(0.05 * math.hypot(31.5, 23.5), rel=0.05)
+
+
+def test_apply_camera_shake_is_the_identity_without_motion_and_averages_the_warps():
+    image = textured()
+    still = rotation_homographies(K, torch.zeros(4, 3))
+    assert torch.allclose(apply_camera_shake(image, still, linear_light=False), image, atol=1e-5)
+    assert torch.allclose(apply_camera_shake(image, still, linear_light=True), image, atol=1e-4)
+    # two samples one pixel left and right of the pose: the average of the two shifted images (away from the border;
+    # a long lens, so that a turn shifts every pixel by nearly the same amount)
+    long_lens = K.clone()
+    long_lens[0, 0] = long_lens[1, 1] = 600.0
+    a = math.atan(1.0 / 600.0)
+    paths = torch.tensor([[0.0, a, 0.0], [0.0, -a, 0.0]])
+    both = apply_camera_shake(image, rotation_homographies(long_lens, paths), linear_light=False)
+    expected = 0.5 * (image[..., 1:-1, :-2] + image[..., 1:-1, 2:])
+    assert torch.allclose(both[..., 1:-1, 1:-1], expected, atol=2e-3)
+    with pytest.raises(ValueError, match=r"\[1, C, H, W\]"):
+        apply_camera_shake(image[0], still)
+    with pytest.raises(ValueError, match=r"\[T, 3, 3\]"):
+        apply_camera_shake(image, still[0])
+
+
+def test_a_shake_path_is_learnt_back_from_the_photo_it_blurred():
+    """A blur made along a known path (about 2 pixels of turn, with roll) is fitted from the module's small random
+    start with Adam: the loss falls by orders of magnitude, and the blur at the start gets a non-zero gradient."""
+    image = textured(1)
+    view = torch.tensor([0])
+    truth = CameraShake(1, num_samples=9, initial_radians=0.0)
+    with torch.no_grad():
+        truth.coefficients.copy_(torch.tensor([[[1.5, 4.0, 0.5], [0.0, 2.0, 0.0], [-3.0, 0.0, 1.0]]]))
+    target = truth(image, K, view, centred=True).detach()
+    model = CameraShake(1, num_samples=9, seed=3)
+    inner = (Ellipsis, slice(6, -6), slice(6, -6))  # the border reads replicated pixels in both
+
+    def loss() -> torch.Tensor:
+        return ((model(image, K, view, centred=True) - target)[inner] ** 2).mean()
+
+    first = loss()
+    first.backward()
+    assert model.coefficients.grad is not None and float(model.coefficients.grad.abs().sum()) > 0
+    optimiser = torch.optim.Adam(model.parameters(), lr=0.1, eps=1e-8)
+    for _ in range(150):
+        optimiser.zero_grad()
+        value = loss()
+        value.backward()
+        optimiser.step()
+    assert float(loss()) < 0.02 * float(first)
+
+
+def test_initial_paths_are_small_and_leave_the_global_random_stream_alone():
+    torch.manual_seed(5)
+    expected = torch.rand(3)
+    torch.manual_seed(5)
+    shake = CameraShake(6, num_samples=9)
+    assert torch.equal(torch.rand(3), expected)
+    rotvecs = shake.rotvecs(torch.tensor([2]), centred=True)
+    assert rotvecs.shape == (9, 3) and 0 < float(rotvecs.abs().max()) < 0.01
+    assert torch.equal(CameraShake(6, num_samples=9).coefficients, shake.coefficients)  # seeded: reproducible
