@@ -14,3 +14,4 @@ from gsmsdr_ns.blur.profile import (
 )
 from gsmsdr_ns.blur.defocus import ThinLensDefocus, occluding_disk_kernels, soft_disk_kernels, thin_lens_radius
 from gsmsdr_ns.blur.degradation_model import DegradationModel, DegradationPlan
+from gsmsdr_ns.blur.shake import CameraShake, apply_camera_shake, rotation_homographies

@@ -2,14 +2,15 @@
 
 It owns one :class:`~gsmsdr_ns.blur.profile.DegradationProfile` per training image and only the parts those
 profiles need: the blur field (MAAN + HPKO, with its thin lens for defocus) and its HPKO scheduler with the
-scheduler's running state, and the resolution-loss model. A sharp scene builds none of them. The nerfstudio model
-asks it, per training step, for a :class:`DegradationPlan` (:meth:`DegradationModel.plan`) and passes the render
-through it (:meth:`DegradationModel.forward`); the viewer's blur outputs come from :meth:`DegradationModel.preview`.
-Both run "the thin lens, then the field" through one method, :meth:`DegradationModel._lens_then_field`.
+scheduler's running state, the optional camera-shake paths (``BlurFieldConfig.camera_shake``), and the
+resolution-loss model. A sharp scene builds none of them. The nerfstudio model asks it, per training step, for a
+:class:`DegradationPlan` (:meth:`DegradationModel.plan`) and passes the render through it
+(:meth:`DegradationModel.forward`); the viewer's blur outputs come from :meth:`DegradationModel.preview`. Both run
+"the thin lens, then the field" through one method, :meth:`DegradationModel._lens_then_field`.
 
-Checkpoint keys: ``blur_field.*``, ``resolution_model.*`` and ``train_camera_centres`` under this module's prefix;
-:func:`remap_legacy_keys` moves the keys of checkpoints written before this module existed (the same names one
-level up) under it.
+Checkpoint keys: ``blur_field.*``, ``camera_shake.*``, ``resolution_model.*`` and ``train_camera_centres`` under
+this module's prefix; :func:`remap_legacy_keys` moves the keys of checkpoints written before this module existed
+(the same names one level up) under it.
 """
 
 from __future__ import annotations
@@ -27,8 +28,8 @@ from gsmsdr_ns.blur.kernels import kernel_centroids
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo
 from gsmsdr_ns.blur.maan import host_checked_view_ids
 from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
-from gsmsdr_ns.blur.shake import CameraShake
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, describe_profiles, effective_factor
+from gsmsdr_ns.blur.shake import CameraShake
 from gsmsdr_ns.timing_hooks import timed
 
 __all__ = ["DegradationModel", "DegradationPlan", "crop_margin", "LEGACY_KEY_PREFIXES", "remap_legacy_keys"]
