@@ -239,7 +239,8 @@ def _fsync_dir(folder: Path) -> None:
 
 # -- a checkpoint of another preset ------------------------------------------------------------------------------
 
-_BLUR_FIELD = "degradation.blur_field."
+_DEGRADATION = "degradation."
+_BLUR_FIELD = _DEGRADATION + "blur_field."
 _KERNEL_HEAD = re.compile(r"^degradation\.blur_field\.heads\.blur\.(\d+)\.weight$")
 
 
@@ -306,39 +307,49 @@ def preset_of(state: Mapping[str, torch.Tensor]) -> Optional[str]:
     return None
 
 
+def _check_optional_part(
+    model_state: Mapping[str, torch.Tensor],
+    checkpoint_state: Mapping[str, torch.Tensor],
+    key: str,
+    only_in_checkpoint: str,
+    only_in_model: str,
+) -> None:
+    """Raise :class:`CheckpointMismatchError` with ``only_in_checkpoint`` when ``key`` is in the checkpoint and not
+    in this model, with ``only_in_model`` the other way round: an optional module one config builds and the other
+    does not."""
+    theirs, ours = key in checkpoint_state, key in model_state
+    if theirs and not ours:
+        raise CheckpointMismatchError(only_in_checkpoint)
+    if ours and not theirs:
+        raise CheckpointMismatchError(only_in_model)
+
+
 def check_thin_lens(model_state: Mapping[str, torch.Tensor], checkpoint_state: Mapping[str, torch.Tensor]) -> None:
     """Raise :class:`CheckpointMismatchError` naming the flag to load with when the checkpoint has a thin lens this
     model does not build, or the other way round."""
-    key = _BLUR_FIELD + "thin_lens.log_aperture"
-    theirs, ours = key in checkpoint_state, key in model_state
-    if theirs and not ours:
-        raise CheckpointMismatchError(
-            "has a thin lens that this run's config does not build: it was trained with the lens on images blurred "
-            "by an unknown kind of blur, which is now optional (add "
-            "--pipeline.model.blur-field.thin-lens-for-unknown-kind True)"
-        )
-    if ours and not theirs:
-        raise CheckpointMismatchError(
-            "has no thin lens, but this run's config builds one (add --pipeline.model.blur-field.thin-lens False, "
-            "or --pipeline.model.blur-field.thin-lens-for-unknown-kind False if it was set)"
-        )
+    _check_optional_part(
+        model_state,
+        checkpoint_state,
+        _BLUR_FIELD + "thin_lens.log_aperture",
+        "has a thin lens that this run's config does not build: it was trained with the lens on images blurred by an "
+        "unknown kind of blur, which is now optional (add --pipeline.model.blur-field.thin-lens-for-unknown-kind True)",
+        "has no thin lens, but this run's config builds one (add --pipeline.model.blur-field.thin-lens False, or "
+        "--pipeline.model.blur-field.thin-lens-for-unknown-kind False if it was set)",
+    )
 
 
 def check_camera_shake(model_state: Mapping[str, torch.Tensor], checkpoint_state: Mapping[str, torch.Tensor]) -> None:
     """Raise :class:`CheckpointMismatchError` naming the flag to load with when the checkpoint has learnt camera
     shake paths this model does not build, or the other way round."""
-    key = "degradation.camera_shake.coefficients"
-    theirs, ours = key in checkpoint_state, key in model_state
-    if theirs and not ours:
-        raise CheckpointMismatchError(
-            "has camera shake paths that this run's config does not build (add "
-            "--pipeline.model.blur-field.camera-shake True)"
-        )
-    if ours and not theirs:
-        raise CheckpointMismatchError(
-            "has no camera shake paths, but this run's config builds them (add "
-            "--pipeline.model.blur-field.camera-shake False)"
-        )
+    _check_optional_part(
+        model_state,
+        checkpoint_state,
+        _DEGRADATION + "camera_shake.coefficients",
+        "has camera shake paths that this run's config does not build (add "
+        "--pipeline.model.blur-field.camera-shake True)",
+        "has no camera shake paths, but this run's config builds them (add "
+        "--pipeline.model.blur-field.camera-shake False)",
+    )
 
 
 def check_state_dict_shapes(
