@@ -21,6 +21,7 @@ from gsmsdr_ns.bench.suite_config import RunKey, SuiteConfigError, find_suite_fi
 from gsmsdr_ns.io.colmap import read_colmap
 from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.io.images import read_image_float
+from skimage.transform import resize
 from conftest import shared_fern
 
 NUM_PHOTOS = 6
@@ -54,7 +55,8 @@ def photo_set(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def built(photo_set, tmp_path_factory) -> dict:
-    """The scenes of ``full`` (estimated records), ``full-true`` and ``sharp`` on the six photos."""
+    """The scenes of ``full`` (estimated records), ``full-true``, ``sharp`` and ``sharp-degraded-poses`` on the six
+    photos."""
     work = tmp_path_factory.mktemp("bench")
     config = work / "real-tiny.yaml"
     config.write_text(suite_text(), encoding="utf8")
@@ -63,7 +65,8 @@ def built(photo_set, tmp_path_factory) -> dict:
         suite = load_suite(config)
         scene = suite.scenes[0]
         logs: list = []
-        data = {m: scene.data(METHODS[m], work, logs.append) for m in ("full", "full-true", "sharp", "plain")}
+        methods = ("full", "full-true", "sharp", "plain", "sharp-degraded-poses")
+        data = {m: scene.data(METHODS[m], work, logs.append) for m in methods}
     return {"suite": suite, "data": data, "logs": logs, "work": work}
 
 
@@ -75,7 +78,11 @@ def test_shipped_real_suite_parses() -> None:
     assert defocus.preset == "defocus-strong"
     assert motion.images == defocus.images == sharp.images  # the YAML merge key
     assert motion.train_downscale == defocus.train_downscale == sharp.train_downscale
-    assert suite.methods == ["plain", "full", "sharp"] and suite.steps == [3000] and len(suite.seeds) >= 3
+    assert suite.methods == ["plain", "full", "sharp-degraded-poses", "sharp"]
+    assert suite.steps == [3000] and len(suite.seeds) >= 3
+    # the two bounds train on different photos: their records must not be taken for each other's
+    assert fingerprint(suite, RunKey("fern-motion", "sharp", 3000, 0)) != fingerprint(
+        suite, RunKey("fern-motion", "sharp-degraded-poses", 3000, 0))
     assert suite.align_poses
     assert suite.threads == 1 and "registered" in suite.scenes[0].describe()
 
@@ -121,7 +128,10 @@ def test_missing_photo_set_says_where_it_looked(tmp_path: Path, monkeypatch: pyt
 def test_each_method_gets_its_scene(built) -> None:
     data = built["data"]
     assert data["plain"] == data["full"] != data["full-true"] != data["sharp"]
+    assert len({data[m] for m in ("full", "full-true", "sharp", "sharp-degraded-poses")}) == 4
     assert "motion-mild" in data["full"].name and "-sharp-" in data["sharp"].name
+    assert "motion-mild" in data["sharp-degraded-poses"].name and "sharp-photos" in data["sharp-degraded-poses"].name
+    assert not (data["sharp-degraded-poses"] / "degradation.json").exists()
     for folder in data.values():
         assert (folder / "hold=3").is_file() and (folder / "real_scene.json").is_file()
     assert not (data["full"] / "degradation.json").exists(), "the default method must estimate its records"
@@ -166,6 +176,37 @@ def test_scenes_share_cameras_and_differ_only_where_they_should(built) -> None:
         assert full.shape[:2] == (2 * motion.shape[0] + full.shape[0] % 2, 2 * motion.shape[1] + full.shape[1] % 2)
         blurred = float(np.abs(np.diff(motion, axis=1)).mean()) < 0.9 * float(np.abs(np.diff(sharp, axis=1)).mean())
         assert blurred == (name not in test_views), name
+
+
+def _smoothed(image: np.ndarray, sigma: float = 2.0) -> np.ndarray:
+    """image [H, W, 3] blurred by a Gaussian of ``sigma`` px: what a shake of a few px leaves comparable."""
+    from skimage.filters import gaussian
+
+    return gaussian(image, sigma=sigma, channel_axis=-1)
+
+
+def test_sharp_photos_scene_has_the_degraded_runs_cameras(built) -> None:
+    """The bound ``sharp-degraded-poses`` trains on the sharp photos undistorted and posed by the degraded photos'
+    model: the same cameras as the degraded scene (the seeded mapping run again), the same test photos, sharper
+    training photos that line up with the degraded ones (the sharp twin's, undistorted by its own run, do not)."""
+    data = built["data"]
+    degraded, bound = (read_colmap(data[m] / "sparse" / "0") for m in ("full", "sharp-degraded-poses"))
+    assert bound.names == degraded.names
+    np.testing.assert_array_equal(bound.w2c, degraded.w2c)
+    np.testing.assert_array_equal(bound.intrinsics, degraded.intrinsics)
+    np.testing.assert_array_equal(bound.sizes, degraded.sizes)
+    facts = json.loads((data["sharp-degraded-poses"] / "real_scene.json").read_text(encoding="utf8"))
+    for name in degraded.names:
+        motion = read_image_float(data["full"] / "images_2" / name)
+        sharp = read_image_float(data["sharp-degraded-poses"] / "images_2" / name)
+        if name in facts["test_views"]:
+            np.testing.assert_array_equal(sharp, motion)
+            continue
+        assert np.abs(np.diff(motion, axis=1)).mean() < 0.9 * np.abs(np.diff(sharp, axis=1)).mean(), name
+        # the sharp twin's photo, stretched to this size: the same view through another run's camera
+        twin = resize(read_image_float(data["sharp"] / "images_2" / name), motion.shape, anti_aliasing=True)
+        aligned = float(np.abs(_smoothed(sharp) - _smoothed(motion)).mean())
+        assert aligned < 0.5 * float(np.abs(_smoothed(twin) - _smoothed(motion)).mean()), name
 
 
 def test_registered_test_poses_agree_with_the_sharp_run(built) -> None:

@@ -114,14 +114,18 @@ def test_user_scene_without_sharp_twin_skips_the_upper_bound(tmp_path: Path) -> 
 
 def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert set(METHODS) == {"plain", "plain-poses", "msd-only", "re-only", "full", "full-poses", "full-uncentred",
-                            "full-lens-unknown", "full-margin", "full-shake", "full-true", "full-per-pixel", "-view", "view", "-gaka", "-safm",
-                            "-mca", "-rgbd", "gsmsdr-lite", "sharp"}  # fmt: skip
+                            "full-lens-unknown", "full-margin", "full-shake", "full-true", "full-per-pixel", "-view",
+                            "view", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite", "sharp-degraded-poses",
+                            "sharp"}  # fmt: skip
 
     def model(name: str):
         return METHODS[name].make_config(tmp_path, tmp_path / "out").pipeline.model
 
     assert model("plain").degradation == "sharp" and model("sharp").degradation == "sharp"
     assert METHODS["sharp"].sharp_data and not METHODS["plain"].sharp_data
+    bound = METHODS["sharp-degraded-poses"]
+    assert bound.sharp_data and bound.degraded_poses and not METHODS["sharp"].degraded_poses
+    assert model("sharp-degraded-poses").degradation == "sharp"
     assert model("full").degradation == "auto" and model("full").blur_field.mode == "full"
     assert model("msd-only").blur_field.mode == "msd_only"
     assert model("re-only").blur_field.mode == "re_only"

@@ -74,6 +74,10 @@ class MethodSpec:
     true_records: bool = False
     """On a scene built from real photos, train on its twin that carries the true degradation records (the scene
     itself has none, so the dataparser estimates them)."""
+    degraded_poses: bool = False
+    """With ``sharp_data``, on a scene built from real photos: the sharp photos posed and undistorted by the
+    degraded photos' structure-from-motion instead of the sharp twin's own (what a perfect deblurring could reach
+    with those poses and that camera). Elsewhere the same as ``sharp``."""
     pose_refinement: Optional[str] = None
     """The camera optimizer: None keeps the base preset's (off, as in splatfacto), "off", "degraded" (the views with
     a degradation model) or "all" (every training view)."""
@@ -148,6 +152,10 @@ METHODS: Dict[str, MethodSpec] = {
         _method("-mca", "-MCA", "gsmsdr", "full without the Multi-modal Context Adapter", mca=False),
         _method("-rgbd", "-RGBD", "gsmsdr", "full with an RGB-only feature network (no depth input)", rgbd=False),
         _method("gsmsdr-lite", "gsmsdr-lite", "gsmsdr-lite", "the gsmsdr-lite preset (half-width blur field)"),
+        MethodSpec("sharp-degraded-poses", "sharp, degraded photos' poses (bound)", "sharp", (), True,
+                   "plain Gaussians on the sharp photos, posed and undistorted by the degraded photos' "
+                   "structure-from-motion (real-photo scenes; elsewhere the same as sharp)",
+                   degraded_poses=True),  # fmt: skip
         _method("sharp", "sharp (upper bound)", "sharp", "plain Gaussians on the sharp images of the same scene",
                 sharp_data=True),  # fmt: skip
     )

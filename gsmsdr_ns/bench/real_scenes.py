@@ -16,7 +16,10 @@ For a :class:`RealSceneSpec` (a folder of sharp photos, e.g. ``llff-fern/images_
    of step 2. ``real_scene.json`` keeps what was built.
 
 The sharp twin of a scene (the ``sharp`` upper bound) is the same spec with the ``sharp`` preset: the sharp
-training photos processed the same way.
+training photos processed the same way, so its poses and camera come from structure-from-motion on sharp photos.
+``photos="sharp"`` builds the other bound: the sharp photos undistorted and posed by step 3's model of the
+*degraded* photos (the same seeded, single-threaded mapping run again, writing the sharp photos), i.e. what a
+perfect deblurring could reach with the poses and camera that blurred photos give.
 """
 
 from __future__ import annotations
@@ -43,6 +46,9 @@ REGISTRATION_FILE = "registration.json"
 """Written last into the registered scene of step 3 (its facts); its presence marks that scene complete."""
 RECORDS = ("estimated", "true")
 """Which degradation records a built scene carries: none (the dataparser estimates them), or the true ones."""
+PHOTOS = ("degraded", "sharp")
+"""Which photos a built scene's training views show: the degraded ones, or their sharp originals posed by the
+degraded photos' structure-from-motion (module docstring)."""
 
 
 @dataclass(frozen=True)
@@ -74,8 +80,9 @@ class RealSceneSpec:
     def degraded_name(self) -> str:
         return f"{self.photos_name}-{Path(self.preset).stem}-h{self.hold}-s{self.seed}-r{REAL_SCENE_VERSION}"
 
-    def name(self, records: str = "estimated") -> str:
-        return f"{self.degraded_name}-x{self.train_downscale}-{records}-l{COMPOSED_LAYOUT_VERSION}"
+    def name(self, records: str = "estimated", photos: str = "degraded") -> str:
+        kind = records if photos == "degraded" else f"{photos}-photos"
+        return f"{self.degraded_name}-x{self.train_downscale}-{kind}-l{COMPOSED_LAYOUT_VERSION}"
 
     def configure(self, config) -> None:
         """Point a method's TrainerConfig at the shrunk copies (the Deblur-NeRF reader's ``downscale_factor``)."""
@@ -181,9 +188,11 @@ def _mapping_options(spec: RealSceneSpec, names: Sequence[str]):
 
 
 def map_and_register(photos: Path, train: Sequence[str], test: Sequence[str], out: Path, spec: RealSceneSpec,
-                     log: Callable[[str], None]) -> Dict[str, Any]:  # fmt: skip
+                     log: Callable[[str], None], written_photos: Optional[Path] = None) -> Dict[str, Any]:  # fmt: skip
     """SfM on the ``train`` photos alone, then the ``test`` photos registered into that model, written to ``out``
-    (``images/`` undistorted to pinhole, ``sparse/0``); returns the registration facts.
+    (``images/`` undistorted to pinhole, ``sparse/0``); returns the registration facts. ``written_photos``: a
+    folder of other photos with the same names and sizes (the sharp originals of degraded ones) that are
+    undistorted and written instead of ``photos``; the model is still made from ``photos``.
 
     ``gsmsdr-process``'s SIFT and matching over all photos (one shared camera, as for one capture), incremental
     mapping restricted to the training photos, then a second mapping pass from that model with its frames and
@@ -237,7 +246,7 @@ def map_and_register(photos: Path, train: Sequence[str], test: Sequence[str], ou
                  "focal_px": float(model.cameras[camera_id].focal_length_x)}  # fmt: skip
         scene = work / "scene"
         scene.mkdir()
-        write_undistorted(model, photos, scene, work)
+        write_undistorted(model, written_photos or photos, scene, work)
         write_json_atomic(scene / REGISTRATION_FILE, facts)  # last: marks the folder complete
         if out.exists():
             shutil.rmtree(out)
@@ -294,51 +303,68 @@ def true_records(degradation_json: Path, names: Sequence[str]) -> Dict[str, Any]
     return doc
 
 
-def ensure_real_scene(bench_dir: Path, spec: RealSceneSpec, records: str = "estimated",
-                      anchors: Sequence[Path] = (), log: Optional[Callable[[str], None]] = None) -> Path:  # fmt: skip
-    """The built scene of ``spec`` under ``bench_dir/scenes`` (module docstring), built once and reused;
-    ``records``: "estimated" (no degradation.json) or "true"."""
+def _ensure_degraded(root: Path, spec: RealSceneSpec, sharp_scene: Path, log: Callable[[str], None]) -> Path:
+    """Step 2 of ``spec`` (its ``gsmsdr-degrade`` output), built once."""
     from gsmsdr_ns.degrade import degrade_scene
-    from gsmsdr_ns.degrade.pipeline import split_of
 
-    if records not in RECORDS:
-        raise ValueError(f"records must be one of {RECORDS}, got {records!r}")
-    log = log or (lambda _message: None)
-    root = Path(bench_dir) / "scenes"
-    out = root / spec.name(records)
-    if (out / "real_scene.json").is_file():
-        return out
-    root.mkdir(parents=True, exist_ok=True)
-    photos = resolve_photos(spec, anchors)
-    sharp_scene = root / f"{spec.photos_name}-sfm-s{spec.seed}-r{REAL_SCENE_VERSION}"
-    if not (sharp_scene / "sparse" / "0").is_dir():
-        _process(photos, sharp_scene, spec, log)
     degraded = root / f"{spec.degraded_name}-degraded"
     if not (degraded / "degradation.json").is_file():
         log(f"real scene: degrading {sharp_scene} with {spec.preset} -> {degraded}")
         degrade_scene(sharp_scene, degraded, _degrade_config(spec), overwrite=True, preset=Path(spec.preset).stem)
-    registered = root / f"{spec.degraded_name}-degraded-sfm"
+    return degraded
+
+
+def ensure_real_scene(bench_dir: Path, spec: RealSceneSpec, records: str = "estimated",
+                      anchors: Sequence[Path] = (), log: Optional[Callable[[str], None]] = None,
+                      photos: str = "degraded") -> Path:  # fmt: skip
+    """The built scene of ``spec`` under ``bench_dir/scenes`` (module docstring), built once and reused;
+    ``records``: "estimated" (no degradation.json) or "true"; ``photos``: "degraded", or "sharp" (the sharp
+    originals posed by the degraded photos' structure-from-motion; no records: every photo is sharp)."""
+    from gsmsdr_ns.degrade.pipeline import split_of
+
+    if records not in RECORDS:
+        raise ValueError(f"records must be one of {RECORDS}, got {records!r}")
+    if photos not in PHOTOS:
+        raise ValueError(f"photos must be one of {PHOTOS}, got {photos!r}")
+    log = log or (lambda _message: None)
+    root = Path(bench_dir) / "scenes"
+    out = root / spec.name(records, photos)
+    if (out / "real_scene.json").is_file():
+        return out
+    root.mkdir(parents=True, exist_ok=True)
+    source = resolve_photos(spec, anchors)
+    sharp_scene = root / f"{spec.photos_name}-sfm-s{spec.seed}-r{REAL_SCENE_VERSION}"
+    if not (sharp_scene / "sparse" / "0").is_dir():
+        _process(source, sharp_scene, spec, log)
+    degraded = _ensure_degraded(root, spec, sharp_scene, log)
+    suffix = "" if photos == "degraded" else f"-{photos}-photos"
+    registered = root / f"{spec.degraded_name}-degraded-sfm{suffix}"
     if not (registered / REGISTRATION_FILE).is_file():
         names = sorted(p.name for p in (degraded / "images").iterdir())
         split = [(name, split_of(index, spec.hold)) for index, name in enumerate(names)]
         train, test = [n for n, s in split if s == "train"], [n for n, s in split if s == "test"]
-        map_and_register(degraded / "images", train, test, registered, spec, log)
+        written = None if photos == "degraded" else _ensure_degraded(root, spec.sharp_twin(), sharp_scene, log)
+        map_and_register(degraded / "images", train, test, registered, spec, log,
+                         written_photos=None if written is None else written / "images")  # fmt: skip
     with atomic_dir(out) as tmp:
         facts = compose_scene(tmp, registered, spec.hold, spec.train_downscale)
         facts.update(json.loads((registered / REGISTRATION_FILE).read_text(encoding="utf8")))
-        if records == "true":
+        if records == "true" and photos == "degraded":
             records_doc = true_records(degraded / "degradation.json", facts["names"])
             write_json_atomic(tmp / "degradation.json", records_doc)
-        write_json_atomic(tmp / "real_scene.json", {"version": REAL_SCENE_VERSION, "photos": str(photos),
-                                                    "spec": dataclasses.asdict(spec), "records": records, **facts})
-    log(f"real scene: wrote {out} ({facts['views']} views, {len(facts['test_views'])} sharp test views registered "
-        "into the degraded photos' model)")
+        write_json_atomic(tmp / "real_scene.json", {"version": REAL_SCENE_VERSION, "photos": str(source),
+                                                    "spec": dataclasses.asdict(spec), "records": records,
+                                                    "training_photos": photos, **facts})  # fmt: skip
+    shown = "degraded photos" if photos == "degraded" else "sharp photos, posed by the degraded photos' model"
+    log(f"real scene: wrote {out} ({facts['views']} views: {shown}; {len(facts['test_views'])} sharp test views "
+        "registered into the degraded photos' model)")
     return out
 
 
 __all__ = [
     "DATA_DIR_ENV",
     "REAL_SCENE_VERSION",
+    "PHOTOS",
     "RECORDS",
     "RealSceneSpec",
     "compose_scene",

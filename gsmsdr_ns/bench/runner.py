@@ -73,6 +73,8 @@ def fingerprint(suite: Suite, key: RunKey) -> str:
     }
     if suite.align_poses:  # only then, so records of suites without alignment keep their fingerprint
         payload["align_poses"] = True
+    if method.degraded_poses:  # only then: the other methods' records keep their fingerprint
+        payload["method"]["degraded_poses"] = True
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

@@ -56,6 +56,8 @@ class SceneEntry:
         if self.real is not None:
             from gsmsdr_ns.bench.real_scenes import ensure_real_scene
 
+            if method.sharp_data and method.degraded_poses:
+                return ensure_real_scene(scene_root, self.real, log=log, photos="sharp")
             real = self.real.sharp_twin() if method.sharp_data else self.real
             records = "true" if method.true_records and not method.sharp_data else "estimated"
             return ensure_real_scene(scene_root, real, records, log=log)
