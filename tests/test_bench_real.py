@@ -21,6 +21,7 @@ from gsmsdr_ns.bench.suite_config import RunKey, SuiteConfigError, find_suite_fi
 from gsmsdr_ns.io.colmap import read_colmap
 from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.io.images import read_image_float
+from skimage.filters import gaussian
 from skimage.transform import resize
 from conftest import shared_fern
 
@@ -180,8 +181,6 @@ def test_scenes_share_cameras_and_differ_only_where_they_should(built) -> None:
 
 def _smoothed(image: np.ndarray, sigma: float = 2.0) -> np.ndarray:
     """image [H, W, 3] blurred by a Gaussian of ``sigma`` px: what a shake of a few px leaves comparable."""
-    from skimage.filters import gaussian
-
     return gaussian(image, sigma=sigma, channel_axis=-1)
 
 

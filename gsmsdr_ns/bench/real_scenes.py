@@ -343,9 +343,8 @@ def ensure_real_scene(bench_dir: Path, spec: RealSceneSpec, records: str = "esti
         names = sorted(p.name for p in (degraded / "images").iterdir())
         split = [(name, split_of(index, spec.hold)) for index, name in enumerate(names)]
         train, test = [n for n, s in split if s == "train"], [n for n, s in split if s == "test"]
-        written = None if photos == "degraded" else _ensure_degraded(root, spec.sharp_twin(), sharp_scene, log)
-        map_and_register(degraded / "images", train, test, registered, spec, log,
-                         written_photos=None if written is None else written / "images")  # fmt: skip
+        sharp = None if photos == "degraded" else _ensure_degraded(root, spec.sharp_twin(), sharp_scene, log) / "images"
+        map_and_register(degraded / "images", train, test, registered, spec, log, written_photos=sharp)
     with atomic_dir(out) as tmp:
         facts = compose_scene(tmp, registered, spec.hold, spec.train_downscale)
         facts.update(json.loads((registered / REGISTRATION_FILE).read_text(encoding="utf8")))
