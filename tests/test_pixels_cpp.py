@@ -483,14 +483,23 @@ def _bad_call(**overrides):
 @pytest.mark.parametrize(
     "overrides, pattern",
     [
-        (dict(means2d=torch.zeros(2, 6, 3, dtype=torch.float64)), r"means2d: expected shape \[C, N, 2\], got \[2, 6, 3\]"),
-        (dict(conics=torch.zeros(2, 5, 3, dtype=torch.float64)), r"conics: expected shape \[2, 6, 3\], got \[2, 5, 3\]"),
+        (
+            dict(means2d=torch.zeros(2, 6, 3, dtype=torch.float64)),
+            r"means2d: expected shape \[C, N, 2\], got \[2, 6, 3\]",
+        ),
+        (
+            dict(conics=torch.zeros(2, 5, 3, dtype=torch.float64)),
+            r"conics: expected shape \[2, 6, 3\], got \[2, 5, 3\]",
+        ),
         (dict(colors=torch.zeros(2, 6, dtype=torch.float64)), r"colors: expected shape \[C=2, N=6, D>=1\]"),
         (dict(opacities=torch.zeros(2, 6, 1, dtype=torch.float64)), r"opacities: expected shape \[2, 6\]"),
         (dict(backgrounds=torch.zeros(2, 4, dtype=torch.float64)), r"backgrounds: expected shape \[2, 3\]"),
         (dict(colors=torch.zeros(2, 6, 3, dtype=torch.float32)), r"colors: expected dtype torch.float64"),
         (dict(means2d=torch.zeros(2, 6, 2, dtype=torch.int64)), r"means2d: expected dtype float32 or float64"),
-        (dict(isect_offsets=torch.zeros(2, 3, 4, dtype=torch.int32)), r"isect_offsets: expected shape .*\[2, 3, 3\], got \[2, 3, 4\]"),
+        (
+            dict(isect_offsets=torch.zeros(2, 3, 4, dtype=torch.int32)),
+            r"isect_offsets: expected shape .*\[2, 3, 3\], got \[2, 3, 4\]",
+        ),
         (dict(image_width=13), r"isect_offsets: expected shape .*\[2, 3, 4\]"),
         (dict(flatten_ids="out_of_range"), r"flatten_ids: expected values in \[0, C\*N=12\), got range \[0, 12\]"),
         (dict(flatten_ids=torch.tensor([0.0, 1.0])), r"flatten_ids: expected dtype int32"),

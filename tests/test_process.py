@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from conftest import TRAIN_FLAGS, run_cli
+from gsmsdr_ns.bench.sfm import llff_cameras_opencv, pose_errors
 from gsmsdr_ns.io.colmap import read_colmap
 from gsmsdr_ns.io.images import list_images, read_image, write_image
 from gsmsdr_ns.data.layout import detect_layout
@@ -22,35 +23,6 @@ from conftest import shared_fern
 
 FERN = shared_fern()
 FERN_IMAGES = FERN / "images_8"
-
-# The LLFF rotation columns are the camera's (down, right, backwards) axes; OpenCV / COLMAP's are (right, down,
-# forwards): new column j = sign_j * old column PERM_j.
-LLFF_TO_OPENCV_COLUMNS = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-
-
-def llff_cameras_opencv(poses_bounds: Path):
-    """Camera centres [N, 3] and camera-to-world rotations [N, 3, 3] (OpenCV axes) from poses_bounds.npy."""
-    poses = np.load(poses_bounds)[:, :15].reshape(-1, 3, 5)
-    rotations = poses[:, :, :3] @ LLFF_TO_OPENCV_COLUMNS
-    return poses[:, :, 3], rotations
-
-
-def umeyama(source: np.ndarray, target: np.ndarray):
-    """Similarity (scale, rotation [3, 3], translation [3]) minimising |scale * R @ source + t - target|^2."""
-    mu_s, mu_t = source.mean(0), target.mean(0)
-    xs, xt = source - mu_s, target - mu_t
-    u, sigma, vt = np.linalg.svd(xt.T @ xs / len(source))
-    sign = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    rotation = u @ sign @ vt
-    scale = np.trace(np.diag(sigma) @ sign) / xs.var(0).sum()
-    return scale, rotation, mu_t - scale * rotation @ mu_s
-
-
-def rotation_angle_deg(rotations: np.ndarray) -> np.ndarray:
-    """Angles [N] of rotation matrices [N, 3, 3] in degrees."""
-    cos = (np.trace(rotations, axis1=1, axis2=2) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-
 
 @pytest.fixture(scope="module")
 def fern_scene(tmp_path_factory: pytest.TempPathFactory):
@@ -76,17 +48,12 @@ def test_fern_registers_all_photos_with_llff_poses(fern_scene):
     cameras = read_colmap(out / "sparse" / "0")
     assert cameras.names == names
     assert np.all(cameras.distortion == 0.0)  # undistorted to pinhole
-    centres, rotations = cameras.c2w[:, :3, 3], cameras.c2w[:, :3, :3]
     llff_centres, llff_rotations = llff_cameras_opencv(FERN / "poses_bounds.npy")
-
-    scale, rotation, translation = umeyama(centres, llff_centres)
-    aligned = scale * centres @ rotation.T + translation
-    diameter = np.max(np.linalg.norm(llff_centres[:, None] - llff_centres[None], axis=-1))
-    centre_error = np.linalg.norm(aligned - llff_centres, axis=1) / diameter
-    angle_error = rotation_angle_deg(np.swapaxes(llff_rotations, 1, 2) @ rotation @ rotations)
-    print(f"max centre error {centre_error.max():.4f} of the diameter, max rotation error {angle_error.max():.3f} deg")
-    assert centre_error.max() < 0.01
-    assert angle_error.max() < 1.0
+    errors = pose_errors(cameras.c2w, llff_centres, llff_rotations)
+    print(f"max centre error {errors.max_centre:.4f} of the diameter, max rotation error "
+          f"{errors.max_rotation_deg:.3f} deg")  # fmt: skip
+    assert errors.max_centre < 0.01
+    assert errors.max_rotation_deg < 1.0
 
 
 def test_unrelated_photos_fail_clearly_and_leave_nothing(tmp_path: Path):
@@ -134,8 +101,9 @@ def test_cli_reports_bad_input_as_one_error_line(tmp_path: Path):
     (tmp_path / "one").mkdir()
     write_image(tmp_path / "one" / "only.png", np.zeros((8, 8, 3), np.uint8))
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]), COLUMNS="200")
-    proc = subprocess.run([sys.executable, "-m", "gsmsdr_ns.process.cli", "--images", str(tmp_path / "one"),
-                           "--out", str(tmp_path / "scene")], capture_output=True, text=True, env=env, timeout=300)  # fmt: skip
+    argv = [sys.executable, "-m", "gsmsdr_ns.process.cli", "--images", str(tmp_path / "one"),
+            "--out", str(tmp_path / "scene")]  # fmt: skip
+    proc = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert "error:" in proc.stdout and "at least 2" in proc.stdout
     assert not (tmp_path / "scene").exists()
@@ -221,3 +189,27 @@ def test_a_folder_of_photos_without_poses_is_told_how_to_get_them(tmp_path: Path
     assert proc.returncode != 0
     assert f"gsmsdr-process --images {photos / 'images'}" in log.replace("\n", ""), log[-3000:]
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*.ckpt"))
+
+
+def test_domain_size_pooling_reaches_the_sift_descriptors(tmp_path: Path):
+    """``ProcessConfig.domain_size_pooling`` changes the descriptors pycolmap writes (pooled descriptors); it is off
+    by default (no consistent effect on the poses of blurred photos, docs/results/sfm)."""
+    import pycolmap
+
+    from gsmsdr_ns.process.sfm import extract_and_match
+
+    assert not ProcessConfig().domain_size_pooling
+    names = list_images(FERN / "images_16")[:3]
+    descriptors = {}
+    for pooling in (False, True):
+        database = tmp_path / f"pooling-{pooling}.db"
+        config = ProcessConfig(domain_size_pooling=pooling, num_threads=1)
+        extract_and_match(database, FERN / "images_16", names, config)
+        db = pycolmap.Database.open(database)
+        image = db.read_image_with_name(names[0])
+        descriptors[pooling] = np.asarray(db.read_descriptors(image.image_id).data)  # [K, 128] uint8
+        db.close()
+    off, on = descriptors[False], descriptors[True]
+    assert len(off) > 100 and len(on) > 100 and off.shape[1] == on.shape[1] == 128
+    n = min(len(off), len(on))
+    assert not np.array_equal(off[:n], on[:n])

@@ -69,7 +69,9 @@ def brute_force_render(means, quats, scales, opacities, colors, viewmat, K, widt
     mean2d, cov2d, depth = torch.stack(mean2d), torch.stack(cov2d), torch.stack(depth)
     inv = torch.linalg.inv(cov2d)
     order = torch.argsort(depth)
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij")
+    ys, xs = torch.meshgrid(
+        torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij"
+    )
     pix = torch.stack([xs + 0.5, ys + 0.5], -1).reshape(-1, 2)
     out = torch.zeros(pix.shape[0], 3, dtype=torch.float64)
     T = torch.ones(pix.shape[0], dtype=torch.float64)
@@ -116,7 +118,8 @@ def test_matches_brute_force_reference(backend, seed):
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_backends_agree_on_values_and_gradients(backend):
     torch.manual_seed(3)
-    means, quats, scales, opac, colors, viewmats, Ks, W, H = random_scene(200, 7, width=70, height=50, dtype=torch.float32)
+    scene = random_scene(200, 7, width=70, height=50, dtype=torch.float32)
+    means, quats, scales, opac, colors, viewmats, Ks, W, H = scene
     leaves = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors)]
     upstream = torch.randn(2, H, W, 4)
 
@@ -138,7 +141,8 @@ def test_backends_agree_on_values_and_gradients(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_gradcheck_float64(backend):
-    means, quats, scales, opac, colors, viewmats, Ks, W, H = random_scene(5, 11, width=12, height=10, scale=(0.08, 0.15))
+    scene = random_scene(5, 11, width=12, height=10, scale=(0.08, 0.15))
+    means, quats, scales, opac, colors, viewmats, Ks, W, H = scene
     opac = torch.full_like(opac, 0.6)  # clear of the 1/255 skip and the 0.999 clamp
 
     def render(m, q, s, o, c):
@@ -157,7 +161,9 @@ def test_projection_matches_gsplat_torch_reference():
     means, quats, scales, *_ , viewmats, Ks, W, H = random_scene(300, 5, dtype=torch.float32, spread=4.0)
     covars = covariance_3d(quats, scales)
     ours = project_gaussians(means, covars, viewmats, Ks, W, H, calc_compensations=True)
-    radii, means2d, depths, conics, comp = _fully_fused_projection(means, covars, viewmats, Ks, W, H, calc_compensations=True)
+    radii, means2d, depths, conics, comp = _fully_fused_projection(
+        means, covars, viewmats, Ks, W, H, calc_compensations=True
+    )
     assert torch.equal(ours.radii, radii.to(torch.int32))
     keep = radii > 0
     assert keep.any() and (~keep).any()  # the scene has both visible and culled Gaussians

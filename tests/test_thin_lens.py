@@ -96,7 +96,8 @@ def test_occluding_disk_kernels_keep_a_sharp_foreground_and_spread_a_blurred_one
 def test_occluding_disk_kernels_are_differentiable_in_the_radius_and_check_shapes():
     radius = torch.full((1, 1, 4, 4), 1.5, requires_grad=True)
     inverse_depth = torch.rand(1, 1, 4, 4)
-    apply_pixel_kernels(torch.rand(1, 3, 4, 4), occluding_disk_kernels(radius, inverse_depth, 5)).square().sum().backward()
+    kernels = occluding_disk_kernels(radius, inverse_depth, 5)
+    apply_pixel_kernels(torch.rand(1, 3, 4, 4), kernels).square().sum().backward()
     assert radius.grad is not None and torch.isfinite(radius.grad).all() and radius.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="inverse_depth"):
         occluding_disk_kernels(torch.zeros(1, 1, 4, 4), torch.zeros(1, 1, 4, 5), 5)

@@ -184,12 +184,56 @@ class SuiteBench:
             raise SystemExit(1)
 
 
+@dataclass
+class SfmBench:
+    """gsmsdr-process on the LLFF fern photos, sharp and degraded by gsmsdr-degrade presets, with SIFT domain-size
+    pooling on and off: photos registered, time, and camera errors against LLFF's poses. See
+    gsmsdr_ns/bench/sfm.py."""
+
+    dataset: str = "llff-fern"
+    """Photo set folder with poses_bounds.npy (under $GSMSDR_DATA_DIR or shared/data), or an absolute path."""
+    images: str = "images_8"
+    """Folder of the photos inside the set."""
+    versions: Tuple[str, ...] = ("sharp", "motion-mild", "motion-strong", "defocus", "defocus-strong")
+    """Rows: "sharp" (the photos) and gsmsdr-degrade presets (the degraded photos alone)."""
+    pooling: Tuple[bool, ...] = (False, True)
+    """Domain-size pooling settings to run each version with."""
+    threads: int = -1
+    """pycolmap threads (-1: all cores)."""
+    seed: int = 0
+    """Degradation and SfM seed."""
+    work: Path = Path(tempfile.gettempdir()) / "gsmsdr-bench" / "sfm"
+    """Scratch folder for the processed scenes."""
+    out: Path = Path("bench-results") / "sfm"
+    """Folder of results.md."""
+
+    def main(self) -> None:
+        import shlex
+
+        from gsmsdr_ns.bench.real_scenes import RealSceneSpec, resolve_photos
+        from gsmsdr_ns.bench.sfm import format_table, run_sfm_benchmark, write_results
+        from gsmsdr_ns.io.errors import InputError
+
+        try:
+            photos = resolve_photos(RealSceneSpec(dataset=self.dataset, images=self.images))
+        except InputError as e:
+            raise SystemExit(str(e)) from None
+        poses = photos.parent / "poses_bounds.npy"
+        if not poses.is_file():
+            raise SystemExit(f"gsmsdr-bench sfm: {poses} is missing; the benchmark compares with LLFF poses")
+        rows = run_sfm_benchmark(photos, poses, self.versions, self.pooling, self.work, self.threads, self.seed)
+        command = "gsmsdr-bench " + " ".join(shlex.quote(a) for a in _invocation_args())
+        print(format_table(rows))
+        print(f"wrote {write_results(self.out, rows, f'{Path(self.dataset).name}/{self.images}', command)}")
+
+
 SUBCOMMANDS = {
     "raster": RasterBench,
     "degrade": DegradeBench,
     "kernels": KernelsBench,
     "memory": MemoryBench,
     "suite": SuiteBench,
+    "sfm": SfmBench,
 }
 
 _ARGS: List[str] = []

@@ -2,7 +2,8 @@
 
 ``gsmsdr``: splatfacto's schedule and optimizers with the gsmsdr dataparser and model, the full-width blur field
 (MAAN + HPKO, kernels 5 / 9 / 17 following the 1/4 -> 1/2 -> 1 resolution schedule) trained with Adam at a constant
-1e-4 (BAGS: 5e-4; see ``gsmsdr_optimizers``), and the resolution-loss model's residual kernels with Adam at a constant 1e-4.
+1e-4 (BAGS: 5e-4; see ``gsmsdr_optimizers``), and the resolution-loss model's residual kernels with Adam at a
+constant 1e-4.
 
 ``gsmsdr-lite``: the same model with the ``lite`` blur field (half the channels), SH degree 1, kernels 5 / 9 / 13,
 7000 steps with the resolution doubling every 1000 steps and densification until step 4000 (learning-rate

@@ -96,6 +96,7 @@ def extract_and_match(database: Path, images_dir: Path, names: List[str], config
     extraction.num_threads = config.num_threads
     extraction.sift.max_num_features = config.max_num_features
     extraction.sift.estimate_affine_shape = config.estimate_affine_shape
+    extraction.sift.domain_size_pooling = config.domain_size_pooling
     device = _DEVICES[config.device]
     if config.camera_mode == "auto":  # one shared camera per image size: each call starts a new camera
         groups = [("single", group) for group in names_by_size(images_dir, names)]

@@ -78,7 +78,9 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degr
     if sh_degree is None:
         ok = (colors.dim() == 2 and colors.shape[0] == N) or (colors.dim() == 3 and colors.shape[:2] == (C, N))
         if not ok:
-            raise ValueError(f"rasterization: colors must be [N, D] or [C, N, D] (N={N}, C={C}), got {list(colors.shape)}")
+            raise ValueError(
+                f"rasterization: colors must be [N, D] or [C, N, D] (N={N}, C={C}), got {list(colors.shape)}"
+            )
     else:
         ok = (colors.dim() == 3 and colors.shape[0] == N) or (colors.dim() == 4 and colors.shape[:2] == (C, N))
         if not ok or colors.shape[-1] != 3:
