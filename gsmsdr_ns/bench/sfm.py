@@ -128,11 +128,12 @@ def _degraded_photos(photos: Path, preset: str, work: Path, seed: int) -> Tuple[
     from gsmsdr_ns.degrade.config import load_preset
     from gsmsdr_ns.degrade.pipeline import split_of
     from gsmsdr_ns.degrade.variants import BUILTIN_PRESETS
+    from gsmsdr_ns.io.images import list_images
 
-    names = sorted(p.name for p in photos.iterdir() if p.is_file())
+    names = list_images(photos)
     base = BUILTIN_PRESETS[preset] if preset in BUILTIN_PRESETS else load_preset(preset)
     config = dataclasses.replace(base, seed=seed, hold=max(2, len(names)), workers=1)  # only the first stays sharp
-    posed = work / "posed"
+    posed = work / f"posed-{photos.parent.name}-{photos.name}"  # reused by the other presets of the same photos
     if not (posed / "sparse" / "0").is_dir():
         _process(photos, posed, pooling=False, threads=-1, seed=seed)
     degraded = work / f"degraded-{Path(preset).stem}"
@@ -150,11 +151,13 @@ def _degraded_photos(photos: Path, preset: str, work: Path, seed: int) -> Tuple[
 def run_sfm_benchmark(photos: Path, poses_bounds: Path, versions: Sequence[str], pooling: Sequence[bool],
                       work: Path, threads: int = -1, seed: int = 0, log=print) -> List[SfmRow]:  # fmt: skip
     """One :class:`SfmRow` per (version, pooling). photos: the folder of photos whose sorted order is
-    ``poses_bounds.npy``'s; versions: "sharp" and/or gsmsdr-degrade presets; work: scratch folder."""
+    ``poses_bounds.npy``'s; versions: "sharp" and/or gsmsdr-degrade presets; work: scratch folder (the photos'
+    first posing is kept there and reused by later runs on the same photos)."""
     from gsmsdr_ns.io.colmap import read_colmap
+    from gsmsdr_ns.io.images import list_images
 
     photos, work = Path(photos), Path(work)
-    names = sorted(p.name for p in photos.iterdir() if p.is_file())
+    names = list_images(photos)
     ref_centres, ref_rotations = llff_cameras_opencv(poses_bounds)
     if len(ref_centres) != len(names):
         raise ValueError(f"{poses_bounds} has {len(ref_centres)} poses for {len(names)} photos in {photos}")
@@ -162,7 +165,7 @@ def run_sfm_benchmark(photos: Path, poses_bounds: Path, versions: Sequence[str],
     rows = []
     for version in versions:
         images, blur = (photos, 0.0) if version == "sharp" else _degraded_photos(photos, version, work, seed)
-        total = sum(1 for p in images.iterdir() if p.is_file())
+        total = len(list_images(images))
         for pool in pooling:
             out = work / f"scene-{Path(version).stem}-pooling-{'on' if pool else 'off'}"
             result, seconds = _process(images, out, pool, threads, seed)
