@@ -216,12 +216,12 @@ class SfmBench:
 
         try:
             photos = resolve_photos(RealSceneSpec(dataset=self.dataset, images=self.images))
+            poses = photos.parent / "poses_bounds.npy"
+            if not poses.is_file():
+                raise InputError(f"gsmsdr-bench sfm: {poses} is missing; the benchmark compares with LLFF poses")
+            rows = run_sfm_benchmark(photos, poses, self.versions, self.pooling, self.work, self.threads, self.seed)
         except InputError as e:
             raise SystemExit(str(e)) from None
-        poses = photos.parent / "poses_bounds.npy"
-        if not poses.is_file():
-            raise SystemExit(f"gsmsdr-bench sfm: {poses} is missing; the benchmark compares with LLFF poses")
-        rows = run_sfm_benchmark(photos, poses, self.versions, self.pooling, self.work, self.threads, self.seed)
         command = "gsmsdr-bench " + " ".join(shlex.quote(a) for a in _invocation_args())
         print(format_table(rows))
         print(f"wrote {write_results(self.out, rows, f'{Path(self.dataset).name}/{self.images}', command)}")

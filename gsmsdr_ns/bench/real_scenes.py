@@ -35,6 +35,7 @@ from typing import Any, Callable, Dict, Optional, Sequence
 import numpy as np
 
 from gsmsdr_ns.io.atomic import atomic_dir, temp_sibling_dir, write_json_atomic
+from gsmsdr_ns.io.colmap import quiet_pycolmap
 from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.io.photo_sets import DATA_DIR_ENV, photo_set_roots
 
@@ -121,7 +122,7 @@ def parse_real_spec(values: Any, fail: Callable[[str, str], Exception]) -> RealS
         out[k] = v
     spec = RealSceneSpec(**out)
     try:
-        _degrade_config(spec)
+        degrade_config(spec)
     except (InputError, FileNotFoundError, ValueError) as e:
         raise fail(".preset", str(e)) from e
     return spec
@@ -144,7 +145,9 @@ def resolve_photos(spec: RealSceneSpec, anchors: Sequence[Path] = ()) -> Path:
     )
 
 
-def _degrade_config(spec: RealSceneSpec):
+def degrade_config(spec: RealSceneSpec):
+    """The ``gsmsdr-degrade`` config of ``spec``'s preset (built-in name or .yaml file) with its seed and hold, one
+    worker; InputError naming the valid presets otherwise."""
     from gsmsdr_ns.degrade.config import load_preset
     from gsmsdr_ns.degrade.variants import BUILTIN_PRESETS
 
@@ -160,17 +163,11 @@ def _degrade_config(spec: RealSceneSpec):
 
 def _process(photos: Path, out: Path, spec: RealSceneSpec, log: Callable[[str], None]):
     """``gsmsdr-process`` of ``photos`` into ``out`` (one thread: the bench shares the CPU)."""
-    import pycolmap
-
     from gsmsdr_ns.process import ProcessConfig, process_photos
 
     config = ProcessConfig(max_image_size=spec.max_image_size, num_threads=1, seed=spec.seed)
-    previous = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = 1  # warnings and errors only
-    try:
+    with quiet_pycolmap():
         result = process_photos(photos, out, config, overwrite=True)
-    finally:
-        pycolmap.logging.minloglevel = previous
     total = len(result.registered) + len(result.unregistered)
     log(f"real scene: structure-from-motion registered {len(result.registered)}/{total} photos of {photos} -> {out}")
     return result
@@ -187,6 +184,7 @@ def _mapping_options(spec: RealSceneSpec, names: Sequence[str]):
     return options
 
 
+@quiet_pycolmap()
 def map_and_register(photos: Path, train: Sequence[str], test: Sequence[str], out: Path, spec: RealSceneSpec,
                      log: Callable[[str], None], written_photos: Optional[Path] = None) -> Dict[str, Any]:  # fmt: skip
     """SfM on the ``train`` photos alone, then the ``test`` photos registered into that model, written to ``out``
@@ -205,8 +203,6 @@ def map_and_register(photos: Path, train: Sequence[str], test: Sequence[str], ou
 
     config = ProcessConfig(max_image_size=spec.max_image_size, num_threads=1, seed=spec.seed, camera_mode="single")
     pycolmap.set_random_seed(spec.seed)
-    previous = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = 1  # warnings and errors only
     work = temp_sibling_dir(out, "sfm")
     try:
         database = work / "database.db"
@@ -252,7 +248,6 @@ def map_and_register(photos: Path, train: Sequence[str], test: Sequence[str], ou
             shutil.rmtree(out)
         os.rename(scene, out)
     finally:
-        pycolmap.logging.minloglevel = previous
         shutil.rmtree(work, ignore_errors=True)
     log(f"real scene: {len(train)} degraded training photos mapped, {len(test)} sharp test photos registered -> {out}")
     return facts
@@ -310,7 +305,7 @@ def _ensure_degraded(root: Path, spec: RealSceneSpec, sharp_scene: Path, log: Ca
     degraded = root / f"{spec.degraded_name}-degraded"
     if not (degraded / "degradation.json").is_file():
         log(f"real scene: degrading {sharp_scene} with {spec.preset} -> {degraded}")
-        degrade_scene(sharp_scene, degraded, _degrade_config(spec), overwrite=True, preset=Path(spec.preset).stem)
+        degrade_scene(sharp_scene, degraded, degrade_config(spec), overwrite=True, preset=Path(spec.preset).stem)
     return degraded
 
 
@@ -366,6 +361,7 @@ __all__ = [
     "PHOTOS",
     "RECORDS",
     "RealSceneSpec",
+    "degrade_config",
     "compose_scene",
     "ensure_real_scene",
     "map_and_register",

@@ -14,7 +14,6 @@ Each version is processed with SIFT domain-size pooling on and off (``ProcessCon
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import shutil
 import time
@@ -96,19 +95,15 @@ class SfmRow:
 
 
 def _process(images: Path, out: Path, pooling: bool, threads: int, seed: int):
-    import pycolmap
-
+    """``gsmsdr-process`` of ``images`` into ``out`` -> (its ProcessResult, wall seconds)."""
+    from gsmsdr_ns.io.colmap import quiet_pycolmap
     from gsmsdr_ns.process import ProcessConfig, process_photos
 
     config = ProcessConfig(domain_size_pooling=pooling, num_threads=threads, seed=seed)
-    previous = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = 1  # warnings and errors only
-    try:
+    with quiet_pycolmap():
         start = time.perf_counter()
         result = process_photos(images, out, config, overwrite=True)
         return result, time.perf_counter() - start
-    finally:
-        pycolmap.logging.minloglevel = previous
 
 
 def largest_blur_px(records: dict) -> float:
@@ -124,15 +119,13 @@ def largest_blur_px(records: dict) -> float:
 def _degraded_photos(photos: Path, preset: str, work: Path, seed: int) -> Tuple[Path, float]:
     """A folder with ``photos`` posed once, degraded by ``preset``, the held-out sharp photo left out; and the
     largest blur (px) among them."""
+    from gsmsdr_ns.bench.real_scenes import RealSceneSpec, degrade_config
     from gsmsdr_ns.degrade import degrade_scene
-    from gsmsdr_ns.degrade.config import load_preset
     from gsmsdr_ns.degrade.pipeline import split_of
-    from gsmsdr_ns.degrade.variants import BUILTIN_PRESETS
     from gsmsdr_ns.io.images import list_images
 
-    names = list_images(photos)
-    base = BUILTIN_PRESETS[preset] if preset in BUILTIN_PRESETS else load_preset(preset)
-    config = dataclasses.replace(base, seed=seed, hold=max(2, len(names)), workers=1)  # only the first stays sharp
+    hold = max(2, len(list_images(photos)))  # only the first photo stays sharp
+    config = degrade_config(RealSceneSpec(preset=preset, seed=seed, hold=hold))
     posed = work / f"posed-{photos.parent.name}-{photos.name}"  # reused by the other presets of the same photos
     if not (posed / "sparse" / "0").is_dir():
         _process(photos, posed, pooling=False, threads=-1, seed=seed)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.colmap import read_colmap, write_colmap_model
+from ..io.colmap import quiet_pycolmap, read_colmap, write_colmap_model
 from ..io.errors import InputError
 from .source import read_transforms_frames
 
@@ -85,12 +85,8 @@ def undistort_scene(root: str | Path, work: str | Path) -> Path:
     else:
         raise InputError(f"{root} has no COLMAP model (sparse/0/) and no transforms.json: nothing to undistort")
     undistorted = work / "undistorted"
-    previous = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = 1  # warnings and errors only
-    try:
+    with quiet_pycolmap():
         pycolmap.undistort_images(undistorted, distorted, images, output_type="COLMAP", num_threads=1)
-    finally:
-        pycolmap.logging.minloglevel = previous
     os.rename(undistorted / "sparse", undistorted / "sparse-0")
     (undistorted / "sparse").mkdir()
     os.rename(undistorted / "sparse-0", undistorted / "sparse" / "0")

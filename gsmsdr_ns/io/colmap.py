@@ -14,13 +14,14 @@ truncated file with a bare C++ message (or not at all, for ``cameras.bin``); an 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import struct
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, List, Optional, Sequence, Tuple
+from typing import Any, Iterator, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -94,6 +95,21 @@ class ColmapModel:
         Ks = np.zeros((len(self.names), 3, 3))
         Ks[:, 0, 0], Ks[:, 1, 1], Ks[:, 0, 2], Ks[:, 1, 2], Ks[:, 2, 2] = fx, fy, cx, cy, 1.0
         return Ks
+
+
+@contextlib.contextmanager
+def quiet_pycolmap(verbose: bool = False) -> Iterator[None]:
+    """pycolmap logs every step to stderr: inside this block only its warnings and errors (everything when
+    ``verbose``); the previous level is restored after. Also usable as a function decorator."""
+    import pycolmap
+
+    previous = pycolmap.logging.minloglevel
+    if not verbose:
+        pycolmap.logging.minloglevel = 1
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = previous
 
 
 def model_ext(model_dir: Path) -> Optional[str]:

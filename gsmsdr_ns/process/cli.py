@@ -11,7 +11,6 @@ with ``--overwrite``.
 
 from __future__ import annotations
 
-import contextlib
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -23,24 +22,11 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn
 from typing_extensions import Annotated
 
 from .._cli import run_entrypoint
+from ..io.colmap import quiet_pycolmap
 from .config import ProcessConfig
 from .sfm import ProcessResult, process_photos
 
 CONSOLE = Console()
-
-
-@contextlib.contextmanager
-def _quiet_pycolmap(verbose: bool):
-    """pycolmap logs every step to stderr; keep warnings and errors only unless --verbose."""
-    import pycolmap
-
-    previous = pycolmap.logging.minloglevel
-    if not verbose:
-        pycolmap.logging.minloglevel = 1
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = previous
 
 
 @dataclass
@@ -59,7 +45,7 @@ class ProcessCLI:
     def main(self) -> ProcessResult:
         columns = (SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                    TimeElapsedColumn())  # fmt: skip
-        with _quiet_pycolmap(self.config.verbose), Progress(*columns, console=CONSOLE) as progress:
+        with quiet_pycolmap(self.config.verbose), Progress(*columns, console=CONSOLE) as progress:
             result = process_photos(self.images, self.out, self.config, self.overwrite, progress=progress)
         total = len(result.registered) + len(result.unregistered)
         CONSOLE.print(
