@@ -63,3 +63,14 @@ def test_benchmark_rows_for_the_strongly_shaken_small_fern(tmp_path: Path) -> No
     written = write_results(tmp_path / "out", rows, "llff-fern/images_16", "gsmsdr-bench sfm")
     assert written.read_text(encoding="utf8").count(f"| motion-strong | {row.largest_blur_px:.1f} | off | 19/19 |") == 1
     assert len(llff_cameras_opencv(FERN / "poses_bounds.npy")[0]) == 20
+
+
+def test_a_bad_preset_is_reported_before_any_row_runs(tmp_path: Path) -> None:
+    """A misspelt preset among the versions stops the benchmark before it poses a photo (the work folder stays
+    empty), naming the preset and the valid ones."""
+    from gsmsdr_ns.io.errors import InputError
+
+    with pytest.raises(InputError, match="'motion-strnog'.*motion-strong"):
+        run_sfm_benchmark(FERN / "images_16", FERN / "poses_bounds.npy", ["sharp", "motion-strnog"], [False],
+                          tmp_path / "work", threads=1)  # fmt: skip
+    assert not (tmp_path / "work").exists()

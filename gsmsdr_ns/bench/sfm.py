@@ -146,9 +146,13 @@ def run_sfm_benchmark(photos: Path, poses_bounds: Path, versions: Sequence[str],
     """One :class:`SfmRow` per (version, pooling). photos: the folder of photos whose sorted order is
     ``poses_bounds.npy``'s; versions: "sharp" and/or gsmsdr-degrade presets; work: scratch folder (the photos'
     first posing is kept there and reused by later runs on the same photos)."""
+    from gsmsdr_ns.bench.real_scenes import RealSceneSpec, degrade_config
     from gsmsdr_ns.io.colmap import read_colmap
     from gsmsdr_ns.io.images import list_images
 
+    for version in versions:  # a bad preset is reported before any row runs
+        if version != "sharp":
+            degrade_config(RealSceneSpec(preset=version))
     photos, work = Path(photos), Path(work)
     names = list_images(photos)
     ref_centres, ref_rotations = llff_cameras_opencv(poses_bounds)
