@@ -88,9 +88,32 @@ def format_markdown(
     skipped: Optional[Mapping[str, str]] = None,
     failed: Optional[Mapping[str, str]] = None,
 ) -> str:
-    """results.md: header, per-scene tables (Tables 3-5), Table 7, Table 6, time breakdown, gaps."""
+    """results.md: header, then per step budget the per-scene tables (Tables 3-5), Table 7, Table 6, the time
+    breakdown and the gaps; then failed and skipped runs."""
     machine = machine or machine_info()
     agg = aggregate(records)
+    lines = _header_lines(suite, records, command, machine, skipped, failed)
+    for steps in suite.steps:
+        lines += _per_scene_tables(suite, agg, steps)
+        lines += _paper_tables(suite, agg, steps)
+        lines += _time_breakdown(suite, agg, steps)
+        lines += _gap_table(suite, agg, records, steps)
+    if failed:
+        lines += ["## Failed runs", ""] + [f"- `{k}`: {v} (log: `runs/{k}.log`)" for k, v in failed.items()] + [""]
+    if skipped:
+        lines += ["## Skipped runs", ""] + [f"- `{k}`: {v}" for k, v in skipped.items()] + [""]
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def _header_lines(
+    suite: Suite,
+    records: Sequence[Mapping[str, Any]],
+    command: str,
+    machine: Mapping[str, Any],
+    skipped: Optional[Mapping[str, str]],
+    failed: Optional[Mapping[str, str]],
+) -> List[str]:
+    """Title and the bullet list saying when, where, how and what was measured."""
     expected = len(suite.runs()) - len(skipped or {})
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     lines = [f"# Benchmark suite `{suite.name}`", ""]
@@ -124,143 +147,155 @@ def format_markdown(
                  + ("; peak CUDA: torch.cuda.max_memory_allocated" if machine.get("device") == "cuda" else "")
                  )  # fmt: skip
     lines.append("")
+    return lines
 
+
+_Aggregate = Mapping[Tuple[int, str, str], Mapping[str, Any]]
+
+
+def _per_scene_tables(suite: Suite, agg: _Aggregate, steps: int) -> List[str]:
+    """One table per scene at ``steps``: metrics (aligned ones when measured), time, memory, Gaussians, seeds."""
     show_cuda = any(math.isfinite(row["peak_cuda_mb"]) for row in agg.values())
     multi_seed = len(suite.seeds) > 1
-    for steps in suite.steps:
-        suffix = f", {steps} steps"
-        lines.append(f"## Per scene{suffix} (the paper's Tables 3-5)")
+    lines = [f"## Per scene, {steps} steps (the paper's Tables 3-5)", ""]
+    for scene in suite.scenes:
+        rows = [(m, agg.get((steps, scene.name, m))) for m in suite.methods]
+        rows = [(m, r) for m, r in rows if r is not None]
+        if not rows:
+            continue
+        lines.append(f"### {scene.name}")
         lines.append("")
-        for scene in suite.scenes:
-            rows = [(m, agg.get((steps, scene.name, m))) for m in suite.methods]
-            rows = [(m, r) for m, r in rows if r is not None]
-            if not rows:
+        show_aligned = any(math.isfinite(r["psnr_aligned"]) for _, r in rows)
+        head = ["method", "PSNR", "SSIM", "LPIPS"]
+        head += ["PSNR aligned", "SSIM aligned", "pose corr. °"] if show_aligned else []
+        head += ["train s", "ms/step", "peak mem MB"]
+        head += ["peak CUDA MB"] if show_cuda else []
+        head += ["Gaussians"] + (["seeds", "PSNR lowest - highest seed"] if multi_seed else [])
+        lines.append("| " + " | ".join(head) + " |")
+        lines.append("| --- | " + " | ".join("---:" for _ in head[1:]) + " |")
+        for m, r in rows:
+            cells = [METHODS[m].label, _f(r["psnr"]), _f(r["ssim"], 4), _f(r["lpips"], 4)]
+            if show_aligned:
+                cells += [_f(r["psnr_aligned"]), _f(r["ssim_aligned"], 4), _f(r["pose_correction_deg"], 2)]
+            cells += [_f(r["train_seconds"], 0), _f(r["step_ms"], 0), _f(r["peak_rss_mb"], 0)]
+            cells += [_f(r["peak_cuda_mb"], 0)] if show_cuda else []
+            cells += [_f(r["num_gaussians"], 0)]
+            cells += [str(r["seeds"]), f"{_f(r['psnr_min'])} - {_f(r['psnr_max'])}"] if multi_seed else []
+            lines.append("| " + " | ".join(cells) + " |")
+        lines.append("")
+    return lines
+
+
+def _paper_tables(suite: Suite, agg: _Aggregate, steps: int) -> List[str]:
+    """The paper's Table 7 (deblurring vs resolution enhancement) and Table 6 (module ablation) at ``steps``, each
+    when the suite trains enough of its rows; PSNR and SSIM per scene."""
+    scene_names = [s.name for s in suite.scenes]
+
+    def scene_cells(method: str) -> List[str]:
+        cells = []
+        for name in scene_names:
+            r = agg.get((steps, name, method))
+            cells += [_f(r["psnr"]) if r else "-", _f(r["ssim"], 4) if r else "-"]
+        return cells
+
+    header_pairs = " | ".join(f"{n} PSNR | {n} SSIM" for n in scene_names)
+    align = " | ".join("---: | ---:" for _ in scene_names)
+    lines: List[str] = []
+    t7 = [(m, label) for m, label in TABLE7_METHODS if m in suite.methods]
+    if sum(m != "plain" for m, _ in t7) >= 2:
+        lines += [f"## Table 7, {steps} steps: multi-scale deblurring vs resolution enhancement", ""]
+        lines.append(f"| configuration | {header_pairs} |")
+        lines.append(f"| --- | {align} |")
+        for m, label in t7:
+            lines.append(f"| {label} | " + " | ".join(scene_cells(m)) + " |")
+        lines.append("")
+    t6 = [m for m in TABLE6_METHODS if m in suite.methods]
+    if sum(m not in ("plain", "full", "msd-only") for m in t6) >= 1:
+        lines += [f"## Table 6, {steps} steps: module ablation (✓ present, ✗ removed; RE-only = -HPKO)", ""]
+        lines.append(f"| GAKA | SAFM | MCA | RGBD | HPKO | method | {header_pairs} |")
+        lines.append(f"| :-: | :-: | :-: | :-: | :-: | --- | {align} |")
+        for m in t6:
+            mods = METHODS[m].modules() or {}
+            marks = " | ".join("✓" if mods.get(k) else "✗" for k in ("GAKA", "SAFM", "MCA", "RGBD", "HPKO"))
+            lines.append(f"| {marks} | {METHODS[m].label} | " + " | ".join(scene_cells(m)) + " |")
+        lines.append("")
+    return lines
+
+
+_BREAKDOWN_NAMES = {"rasterization": "raster", "blur_field": "blur field", "kernels": "kernels",
+                    "densification": "densify", "data": "data", "other": "other"}  # fmt: skip
+_BREAKDOWN_LEGEND = (
+    "raster: `_rasterize` (activation, projection, SH, tiles, pixel kernel); blur field: kernel and mask prediction "
+    "(MAAN, MCA, HPKO heads); kernels: kernel application (`BlurField.blur`), the thin lens (one fused op) and the "
+    "resolution-loss model; densify: the strategy's pre/post-backward hooks; data: `next_train`; other: the rest of "
+    "the step (mask blend, losses and their backward, composite, optimizer and scheduler steps, callbacks). Backward "
+    "time is attributed by gradient-hook event times at component boundaries (see `gsmsdr_ns/bench/timing.py`)."
+)
+
+
+def _time_breakdown(suite: Suite, agg: _Aggregate, steps: int) -> List[str]:
+    """Seconds of training per component (forward + backward) and the backward share, per scene and method."""
+    lines = [f"## Time breakdown, {steps} steps (seconds of training, forward + backward)", ""]
+    lines.append("| scene | method | " + " | ".join(_BREAKDOWN_NAMES[c] for c in CATEGORIES)
+                 + " | total | of which backward (raster / blur field / kernels) |")  # fmt: skip
+    lines.append("| --- | --- | " + " | ".join("---:" for _ in CATEGORIES) + " | ---: | ---: |")
+    for scene in suite.scenes:
+        for m in suite.methods:
+            r = agg.get((steps, scene.name, m))
+            if r is None:
                 continue
-            lines.append(f"### {scene.name}")
-            lines.append("")
-            show_aligned = any(math.isfinite(r["psnr_aligned"]) for _, r in rows)
-            head = ["method", "PSNR", "SSIM", "LPIPS"]
-            head += ["PSNR aligned", "SSIM aligned", "pose corr. °"] if show_aligned else []
-            head += ["train s", "ms/step", "peak mem MB"]
-            head += ["peak CUDA MB"] if show_cuda else []
-            head += ["Gaussians"] + (["seeds", "PSNR lowest - highest seed"] if multi_seed else [])
-            lines.append("| " + " | ".join(head) + " |")
-            lines.append("| --- | " + " | ".join("---:" for _ in head[1:]) + " |")
-            for m, r in rows:
-                cells = [METHODS[m].label, _f(r["psnr"]), _f(r["ssim"], 4), _f(r["lpips"], 4)]
-                if show_aligned:
-                    cells += [_f(r["psnr_aligned"]), _f(r["ssim_aligned"], 4), _f(r["pose_correction_deg"], 2)]
-                cells += [_f(r["train_seconds"], 0), _f(r["step_ms"], 0), _f(r["peak_rss_mb"], 0)]
-                cells += [_f(r["peak_cuda_mb"], 0)] if show_cuda else []
-                cells += [_f(r["num_gaussians"], 0)]
-                cells += [str(r["seeds"]), f"{_f(r['psnr_min'])} - {_f(r['psnr_max'])}"] if multi_seed else []
-                lines.append("| " + " | ".join(cells) + " |")
-            lines.append("")
+            b, bw = r["breakdown"], r["backward"]
+            back = " / ".join(_f(bw.get(c), 1) for c in ("rasterization", "blur_field", "kernels"))
+            lines.append(f"| {scene.name} | {METHODS[m].label} | "
+                         + " | ".join(_f(b[c], 1) for c in CATEGORIES)
+                         + f" | {_f(r['train_seconds'], 1)} | {back} |")  # fmt: skip
+    return lines + ["", _BREAKDOWN_LEGEND, ""]
 
-        scene_names = [s.name for s in suite.scenes]
 
-        def scene_cells(method: str) -> List[str]:
-            cells = []
-            for name in scene_names:
-                r = agg.get((steps, name, method))
-                cells += [_f(r["psnr"]) if r else "-", _f(r["ssim"], 4) if r else "-"]
-            return cells
+def _gap_table(suite: Suite, agg: _Aggregate, records: Sequence[Mapping[str, Any]], steps: int) -> List[str]:
+    """Each method's PSNR / SSIM gain over plain and distance to the sharp bound at ``steps`` (aligned, and the
+    lowest and highest per-seed gain, when measured); nothing when a scene has neither plain nor sharp."""
+    multi_seed = len(suite.seeds) > 1
+    by_seed = {(r["scene"], r["method"], r["seed"]): float(r["psnr"]) for r in records if r["steps"] == steps}
 
-        header_pairs = " | ".join(f"{n} PSNR | {n} SSIM" for n in scene_names)
-        align = " | ".join("---: | ---:" for _ in scene_names)
-        t7 = [(m, label) for m, label in TABLE7_METHODS if m in suite.methods]
-        if sum(m != "plain" for m, _ in t7) >= 2:
-            lines += [f"## Table 7{suffix}: multi-scale deblurring vs resolution enhancement", ""]
-            lines.append(f"| configuration | {header_pairs} |")
-            lines.append(f"| --- | {align} |")
-            for m, label in t7:
-                lines.append(f"| {label} | " + " | ".join(scene_cells(m)) + " |")
-            lines.append("")
-        t6 = [m for m in TABLE6_METHODS if m in suite.methods]
-        if sum(m not in ("plain", "full", "msd-only") for m in t6) >= 1:
-            lines += [f"## Table 6{suffix}: module ablation (✓ present, ✗ removed; RE-only = -HPKO)", ""]
-            lines.append(f"| GAKA | SAFM | MCA | RGBD | HPKO | method | {header_pairs} |")
-            lines.append(f"| :-: | :-: | :-: | :-: | :-: | --- | {align} |")
-            for m in t6:
-                mods = METHODS[m].modules() or {}
-                marks = " | ".join("✓" if mods.get(k) else "✗" for k in ("GAKA", "SAFM", "MCA", "RGBD", "HPKO"))
-                lines.append(f"| {marks} | {METHODS[m].label} | " + " | ".join(scene_cells(m)) + " |")
-            lines.append("")
+    def seed_gaps(scene: str, method: str) -> str:
+        """Lowest and highest PSNR gap to plain over the seeds both were trained with (same seed = same data
+        order and initialisation)."""
+        gaps = [v - by_seed[(scene, "plain", sd)] for (sc, m, sd), v in by_seed.items()
+                if sc == scene and m == method and (scene, "plain", sd) in by_seed]  # fmt: skip
+        return f"{_sign(min(gaps))} .. {_sign(max(gaps))}" if gaps else "-"
 
-        lines += [f"## Time breakdown{suffix} (seconds of training, forward + backward)", ""]
-        names = {"rasterization": "raster", "blur_field": "blur field", "kernels": "kernels", "densification":
-                 "densify", "data": "data", "other": "other"}  # fmt: skip
-        lines.append("| scene | method | " + " | ".join(names[c] for c in CATEGORIES)
-                     + " | total | of which backward (raster / blur field / kernels) |")  # fmt: skip
-        lines.append("| --- | --- | " + " | ".join("---:" for _ in CATEGORIES) + " | ---: | ---: |")
-        for scene in suite.scenes:
-            for m in suite.methods:
-                r = agg.get((steps, scene.name, m))
-                if r is None:
-                    continue
-                b, bw = r["breakdown"], r["backward"]
-                back = " / ".join(_f(bw.get(c), 1) for c in ("rasterization", "blur_field", "kernels"))
-                lines.append(f"| {scene.name} | {METHODS[m].label} | "
-                             + " | ".join(_f(b[c], 1) for c in CATEGORIES)
-                             + f" | {_f(r['train_seconds'], 1)} | {back} |")  # fmt: skip
-        lines.append("")
-        lines.append("raster: `_rasterize` (activation, projection, SH, tiles, pixel kernel); blur field: kernel and "
-                     "mask prediction (MAAN, MCA, HPKO heads); kernels: kernel application (`BlurField.blur`), "
-                     "the thin lens (one fused op) and the resolution-loss model; densify: the strategy's "
-                     "pre/post-backward hooks; data: `next_train`; other: the rest of the step (mask blend, losses "
-                     "and their backward, composite, optimizer and scheduler steps, callbacks). Backward time is "
-                     "attributed by gradient-hook event times at component boundaries (see "
-                     "`gsmsdr_ns/bench/timing.py`).")  # fmt: skip
-        lines.append("")
-
-        by_seed = {(r["scene"], r["method"], r["seed"]): float(r["psnr"]) for r in records if r["steps"] == steps}
-
-        def seed_gaps(scene: str, method: str) -> str:
-            """Lowest and highest PSNR gap to plain over the seeds both were trained with (same seed = same data
-            order and initialisation)."""
-            gaps = [v - by_seed[(scene, "plain", sd)] for (sc, m, sd), v in by_seed.items()
-                    if sc == scene and m == method and (scene, "plain", sd) in by_seed]  # fmt: skip
-            return f"{_sign(min(gaps))} .. {_sign(max(gaps))}" if gaps else "-"
-
-        gap_rows = []
-        aligned_gaps = any(math.isfinite(r["psnr_aligned"]) for (st, _, _), r in agg.items() if st == steps)
-        for scene in suite.scenes:
-            plain, sharp = agg.get((steps, scene.name, "plain")), agg.get((steps, scene.name, "sharp"))
-            if plain and sharp:
-                cells = ["0.00", "0.0000", _sign(sharp["psnr"] - plain["psnr"])]
-                cells += ["0.00"] if aligned_gaps else []
-                cells += ["-"] if multi_seed else []
-                gap_rows.append(f"| {scene.name} | {METHODS['plain'].label} | " + " | ".join(cells) + " |")
-            for m in suite.methods:
-                if m in ("plain", "sharp"):
-                    continue
-                r = agg.get((steps, scene.name, m))
-                if r is None or (plain is None and sharp is None):
-                    continue
-                nan = float("nan")
-                cells = [_sign(r["psnr"] - plain["psnr"] if plain else nan),
-                         _sign(r["ssim"] - plain["ssim"] if plain else nan, 4),
-                         _sign(sharp["psnr"] - r["psnr"] if sharp else nan)]  # fmt: skip
-                if aligned_gaps:
-                    cells.append(_sign(r["psnr_aligned"] - plain["psnr_aligned"] if plain else nan))
-                if multi_seed:
-                    cells.append(seed_gaps(scene.name, m))
-                gap_rows.append(f"| {scene.name} | {METHODS[m].label} | " + " | ".join(cells) + " |")
-        if gap_rows:
-            lines += [f"## Gaps{suffix} (test PSNR in dB, SSIM)", ""]
-            extra = " PSNR aligned: method - plain |" if aligned_gaps else ""
-            extra += " PSNR: method - plain, per seed (lowest .. highest) |" if multi_seed else ""
-            lines.append("| scene | method | PSNR: method - plain | SSIM: method - plain | PSNR: sharp - method |"
-                         + extra)  # fmt: skip
-            lines.append("| --- | --- | ---: | ---: | ---: |" + " ---: |" * (aligned_gaps + multi_seed))
-            lines += gap_rows
-            lines.append("")
-
-    if failed:
-        lines += ["## Failed runs", ""] + [f"- `{k}`: {v} (log: `runs/{k}.log`)" for k, v in failed.items()] + [""]
-    if skipped:
-        lines += ["## Skipped runs", ""] + [f"- `{k}`: {v}" for k, v in skipped.items()] + [""]
-    return "\n".join(lines).rstrip() + "\n"
+    rows = []
+    aligned = any(math.isfinite(r["psnr_aligned"]) for (st, _, _), r in agg.items() if st == steps)
+    nan = float("nan")
+    for scene in suite.scenes:
+        plain, sharp = agg.get((steps, scene.name, "plain")), agg.get((steps, scene.name, "sharp"))
+        if plain and sharp:
+            cells = ["0.00", "0.0000", _sign(sharp["psnr"] - plain["psnr"])]
+            cells += ["0.00"] if aligned else []
+            cells += ["-"] if multi_seed else []
+            rows.append(f"| {scene.name} | {METHODS['plain'].label} | " + " | ".join(cells) + " |")
+        for m in suite.methods:
+            if m in ("plain", "sharp"):
+                continue
+            r = agg.get((steps, scene.name, m))
+            if r is None or (plain is None and sharp is None):
+                continue
+            cells = [_sign(r["psnr"] - plain["psnr"] if plain else nan),
+                     _sign(r["ssim"] - plain["ssim"] if plain else nan, 4),
+                     _sign(sharp["psnr"] - r["psnr"] if sharp else nan)]  # fmt: skip
+            if aligned:
+                cells.append(_sign(r["psnr_aligned"] - plain["psnr_aligned"] if plain else nan))
+            if multi_seed:
+                cells.append(seed_gaps(scene.name, m))
+            rows.append(f"| {scene.name} | {METHODS[m].label} | " + " | ".join(cells) + " |")
+    if not rows:
+        return []
+    extra = " PSNR aligned: method - plain |" if aligned else ""
+    extra += " PSNR: method - plain, per seed (lowest .. highest) |" if multi_seed else ""
+    return [f"## Gaps, {steps} steps (test PSNR in dB, SSIM)", "",
+            "| scene | method | PSNR: method - plain | SSIM: method - plain | PSNR: sharp - method |" + extra,
+            "| --- | --- | ---: | ---: | ---: |" + " ---: |" * (aligned + multi_seed), *rows, ""]  # fmt: skip
 
 
 def _display_path(path: Optional[Path]) -> str:
