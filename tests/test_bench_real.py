@@ -18,6 +18,7 @@ from gsmsdr_ns.bench.methods import METHODS
 from gsmsdr_ns.bench.real_scenes import DATA_DIR_ENV, RealSceneSpec, resolve_photos
 from gsmsdr_ns.bench.runner import fingerprint
 from gsmsdr_ns.bench.suite_config import RunKey, SuiteConfigError, find_suite_file, load_suite
+from gsmsdr_ns.blur.profile import DegradationProfile
 from gsmsdr_ns.io.colmap import read_colmap
 from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.io.images import read_image_float
@@ -141,6 +142,13 @@ def test_each_method_gets_its_scene(built) -> None:
     names = sorted(p.name for p in (data["full"] / "images").iterdir())
     assert [splits[n] for n in names] == ["test", "train", "train", "test", "train", "train"]
     assert all("motion" in doc["images"][n]["effects"] for n in names if splits[n] == "train")
+    # the poses come from the degraded photos' structure-from-motion, not from the shake: kernels stay centred
+    profiles = [DegradationProfile.from_metadata(doc["images"][n]) for n in names if splits[n] == "train"]
+    assert profiles and all(p.motion and not p.exact_pose for p in profiles)
+    (degraded,) = data["full"].parent.glob("*motion-mild*-degraded/degradation.json")  # gsmsdr-degrade's records
+    source = json.loads(degraded.read_text(encoding="utf8"))
+    assert any(e.get("effects", {}).get("motion", {}).get("reference") == "mid_exposure"
+               for e in source["images"].values())  # fmt: skip
     assert any("registered" in line for line in built["logs"])
 
 

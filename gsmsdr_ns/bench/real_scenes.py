@@ -41,7 +41,7 @@ from gsmsdr_ns.io.photo_sets import DATA_DIR_ENV, photo_set_roots
 
 REAL_SCENE_VERSION = 1
 """Bumped when built real scenes change for the same spec, so cached scenes of an older builder are not reused."""
-COMPOSED_LAYOUT_VERSION = 2
+COMPOSED_LAYOUT_VERSION = 3
 """Bumped when the layout of the scenes the methods train on changes (the structure-from-motion steps are reused)."""
 REGISTRATION_FILE = "registration.json"
 """Written last into the registered scene of step 3 (its facts); its presence marks that scene complete."""
@@ -292,9 +292,20 @@ def compose_scene(out: Path, registered: Path, hold: int, factor: int) -> Dict[s
 
 
 def true_records(degradation_json: Path, names: Sequence[str]) -> Dict[str, Any]:
-    """``gsmsdr-degrade``'s ``degradation.json`` restricted to ``names`` (the built scene's images)."""
+    """``gsmsdr-degrade``'s ``degradation.json`` restricted to ``names`` (the built scene's images), for poses that
+    structure-from-motion estimated from the degraded photos.
+
+    The motion records lose their ``"reference": "mid_exposure"``: it says the scene's pose of a shaken photo is the
+    mid-exposure pose of its shake, which holds in ``gsmsdr-degrade``'s output but not here, where every pose comes
+    from the degraded photos themselves (near the centre of each blur). The model then keeps those photos' kernels
+    centred, as for any estimated pose; the kinds and sizes of the blurs stay true.
+    """
     doc = json.loads(Path(degradation_json).read_text(encoding="utf8"))
     doc["images"] = {n: doc["images"][n] for n in names}
+    for entry in doc["images"].values():
+        motion = entry.get("effects", {}).get("motion")
+        if isinstance(motion, dict):
+            motion.pop("reference", None)
     return doc
 
 
