@@ -27,7 +27,7 @@ import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 from gsmsdr_ns.bench.evaluation import evaluate_test_views, make_lpips
 from gsmsdr_ns.bench.machine import machine_info
@@ -203,6 +203,23 @@ class SuiteOutcome:
     outputs: List[Path]
 
 
+def plan_runs(suite: Suite, out: Path) -> Tuple[List[RunKey], List[str], Dict[str, str]]:
+    """(runs to train, ids of runs with a finished record in ``out/runs``, {id: why} of runs no scene supports), in
+    the suite's run order."""
+    todo: List[RunKey] = []
+    reused: List[str] = []
+    skipped: Dict[str, str] = {}
+    for key in suite.runs():
+        scene, method = suite.scene(key.scene), METHODS[key.method]
+        if not scene.supports(method):
+            skipped[key.id] = f"scene {scene.name} has no sharp_path for the sharp upper bound"
+        elif finished_record(suite, out, key) is not None:
+            reused.append(key.id)
+        else:
+            todo.append(key)
+    return todo, reused, skipped
+
+
 def run_suite(
     suite: Suite,
     out: Path,
@@ -231,17 +248,7 @@ def run_suite(
     machine = machine_info()
 
     keys = suite.runs()
-    skipped: Dict[str, str] = {}
-    todo: List[RunKey] = []
-    reused: List[str] = []
-    for key in keys:
-        scene, method = suite.scene(key.scene), METHODS[key.method]
-        if not scene.supports(method):
-            skipped[key.id] = f"scene {scene.name} has no sharp_path for the sharp upper bound"
-        elif finished_record(suite, out, key) is not None:
-            reused.append(key.id)
-        else:
-            todo.append(key)
+    todo, reused, skipped = plan_runs(suite, out)
     lpips = None
     if suite.lpips and todo:
         lpips = make_lpips("cuda" if torch.cuda.is_available() else "cpu")
@@ -326,6 +333,7 @@ __all__ = [
     "fingerprint",
     "finished_record",
     "preset_fingerprint",
+    "plan_runs",
     "record_path",
     "run_suite",
     "train_and_record",
