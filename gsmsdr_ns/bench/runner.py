@@ -78,7 +78,6 @@ def fingerprint(suite: Suite, key: RunKey) -> str:
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-
 def train_and_record(
     suite: Suite,
     key: RunKey,
