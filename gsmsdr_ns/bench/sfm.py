@@ -23,15 +23,12 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-# LLFF's rotation columns are the camera's (down, right, backwards) axes; OpenCV / COLMAP's are (right, down,
-# forwards): new column j = sign_j * old column PERM_j.
-LLFF_TO_OPENCV_COLUMNS = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-
-
 def llff_cameras_opencv(poses_bounds: Path) -> Tuple[np.ndarray, np.ndarray]:
     """Camera centres [N, 3] and camera-to-world rotations [N, 3, 3] (OpenCV axes) from LLFF poses_bounds.npy."""
-    poses = np.load(poses_bounds)[:, :15].reshape(-1, 3, 5)
-    return poses[:, :, 3], poses[:, :, :3] @ LLFF_TO_OPENCV_COLUMNS
+    from gsmsdr_ns.data.cameras import llff_to_opencv
+
+    c2w = llff_to_opencv(np.load(poses_bounds)[:, :15].reshape(-1, 3, 5))
+    return c2w[:, :3, 3], c2w[:, :3, :3]
 
 
 def similarity_fit(source: np.ndarray, target: np.ndarray) -> Tuple[float, np.ndarray, np.ndarray]:
