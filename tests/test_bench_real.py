@@ -89,6 +89,18 @@ def test_shipped_real_suite_parses() -> None:
     assert suite.threads == 1 and "registered" in suite.scenes[0].describe()
 
 
+def test_runs_that_train_on_estimated_records_rerun_when_the_estimate_changes(monkeypatch) -> None:
+    import gsmsdr_ns.estimate.records as records
+
+    suite = load_suite(find_suite_file("real"))
+    keys = [RunKey("fern-motion", m, 3000, 0) for m in ("plain", "full", "sharp-degraded-poses", "sharp")]
+    before = [fingerprint(suite, k) for k in keys]
+    monkeypatch.setattr(records, "METHOD_VERSION", records.METHOD_VERSION + 1)
+    after = [fingerprint(suite, k) for k in keys]
+    # only full reads the estimate; plain and the bounds keep their records
+    assert [b != a for b, a in zip(before, after)] == [False, True, False, False]
+
+
 def test_real_ablations_share_the_real_suites_shaken_scene() -> None:
     """The diagnostic rows train on the very scene of the main suite (same spec and schedule: same records when run
     into the same output folder)."""

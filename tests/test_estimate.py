@@ -296,3 +296,54 @@ def test_sobel_gradient_matches_kornia():
     expected = spatial_gradient(gray[None, None], mode="sobel", normalized=True)[0, 0]
     assert torch.allclose(sobel_gradient(gray), expected, atol=1e-6)
     assert float(expected.abs().max()) > 0.1  # a real photo has edges: the comparison is not between zeros
+
+
+def _fern_set() -> list[np.ndarray]:
+    """The 20 real fern photos at 252x189; photos 10-14 shaken along bent paths (7 px, five directions),
+    photos 15-19 defocused by disks of radius 3-4 px (the first 10 stay sharp)."""
+    from conftest import shared_fern
+    from gsmsdr_ns.io.images import list_images, read_image
+
+    folder = shared_fern() / "images_16"
+    photos = [read_image(folder / n)[..., :3] for n in list_images(folder)]
+    out = photos[:10]
+    for k, photo in enumerate(photos[10:15]):
+        angle = math.pi * k / 5
+        t = np.linspace(-3.5, 3.5, 29)  # a 7 px shake that bends by 2.5 px
+        along, across = t, 2.5 * (t / 3.5) ** 2
+        path = np.stack([along * math.cos(angle) - across * math.sin(angle),
+                         along * math.sin(angle) + across * math.cos(angle)], axis=1)  # fmt: skip
+        out.append(_uint8(convolve_psf(_tensor(photo), motion_kernel_from_trajectory(path).float())))
+    out += [defocus_by(photo, 3.0 + 0.25 * k) for k, photo in enumerate(photos[15:])]
+    return out
+
+
+def test_small_real_photos_get_their_kind_of_blur_from_the_detail_tensor():
+    # At 252x189 a photo has too few step edges per orientation for the orientation rule, which leaves the kind
+    # unknown; the detail tensors, relative to the sharp photos' (views of one scene), name it.
+    images = _fern_set()
+    estimates = estimate_degradations(images)
+    labels = [e.label for e in estimates]
+    assert labels[:10] == ["sharp"] * 10 and labels[15:] == ["defocus"] * 5
+    # a bent shake is nearer isotropic than a straight one: between the two limits the kind stays unknown
+    assert labels[10:15].count("motion") >= 4 and set(labels[10:15]) <= {"motion", "unknown"}
+    assert all(e.blurred is True for e in estimates[10:])
+    assert max(e.isotropy for e in estimates[10:15]) < min(e.isotropy for e in estimates[15:])
+    # without the second opinion (a spread no set meets) the kinds stay unknown, the photos still blurred
+    alone = estimate_degradations(images, EstimateConfig(max_detail_spread=-1.0))
+    assert all(e.label == "unknown" and e.blurred is True for e in alone[10:])
+
+
+def test_the_detail_tensor_shrinks_across_a_motion_and_alike_under_defocus():
+    from gsmsdr_ns.estimate.features import detail_tensor
+
+    photo = sharp_views()[0]
+    sharp = detail_tensor(to_gray(photo))
+    shaken = detail_tensor(to_gray(_uint8(convolve_psf(_tensor(photo), motion_kernel_from_trajectory(
+        np.stack([np.linspace(-4, 4, 33), np.zeros(33)], axis=1)).float()))))  # fmt: skip
+    whiten = np.diag(np.diag(sharp) ** -0.5)  # nearly diagonal on this photo: enough to compare x with y
+    rel = whiten @ shaken @ whiten
+    assert rel[0, 0] < 0.7 * rel[1, 1]  # a horizontal shake took far more of the horizontal detail
+    blurred = whiten @ detail_tensor(to_gray(defocus_by(photo, 3.0))) @ whiten
+    assert 0.9 < blurred[0, 0] / blurred[1, 1] < 1.1
+    assert np.isnan(detail_tensor(to_gray(np.full((64, 64, 3), 90, np.uint8)))).all()  # flat: undefined

@@ -75,6 +75,10 @@ def fingerprint(suite: Suite, key: RunKey) -> str:
         payload["align_poses"] = True
     if method.degraded_poses:  # only then: the other methods' records keep their fingerprint
         payload["method"]["degraded_poses"] = True
+    if suite.scene(key.scene).real is not None and method.has_blur_field and not method.true_records:
+        from gsmsdr_ns.estimate.records import estimate_fingerprint
+
+        payload["estimate"] = estimate_fingerprint()  # a real-photo scene trains on the records estimated for it
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

@@ -18,6 +18,11 @@ image is compared with them.
   then show where the blur is, not its direction). The kind of blur is left unknown when they disagree, when
   the sharp images of the set themselves spread over orientations that much (content that differs from view to
   view), or when fewer than two sharp images leave that spread unmeasured.
+* **motion / defocus, second opinion**: where that rule leaves the kind unknown, the image's detail tensor
+  (:func:`~gsmsdr_ns.estimate.features.detail_tensor`, relative to the reference images') decides: defocus
+  shrinks it alike along every orientation, motion blur mostly along one. It needs no edge of each orientation
+  (small photos have few), but it is trusted only when the set's other sharp images match the references' tensor
+  closely (views of one scene), and the edge widths must agree with the kind as above.
 """
 
 from __future__ import annotations
@@ -32,6 +37,9 @@ from torch import Tensor
 from .features import MIXRES_GROUPS, ImageFeatures, image_features
 
 LABELS = ("sharp", "motion", "defocus", "mixres", "unknown")
+METHOD_VERSION = 2
+"""Raised whenever the same images and config get other labels (cached estimates and benchmark runs that trained
+on them are then computed again). 2: the detail-tensor second opinion on the kind of blur."""
 
 
 @dataclass
@@ -73,6 +81,15 @@ class EstimateConfig:
     """... and motion-blurred only when it is at most this: above it part of the view is blurred more than the
     rest (a lens focused on one depth), and the orientation spread then shows where the blur is, not its
     direction. Otherwise the kind is left unknown."""
+    max_detail_spread: float = 0.07
+    """The detail tensors decide a kind only when the set's sharp images other than the references differ from the
+    references' tensor by at most this (median of the largest |log eigenvalue| of the relative tensor); more, and
+    view content alone moves them."""
+    motion_isotropy: float = 0.8
+    """A blurred image whose detail isotropy (see `DegradationEstimate.isotropy`) is below this is motion-blurred
+    (when the orientation rule leaves the kind unknown) ..."""
+    defocus_isotropy: float = 0.87
+    """... and above this, defocused; in between the kind stays unknown."""
     max_size: int = 1024
     """Blur is judged on a copy whose longer side is at most this many px (0: full resolution)."""
     coarse_sigma: float = 2.0
@@ -109,6 +126,10 @@ class DegradationEstimate:
     width_spread: Optional[float] = None
     """Spread of the image's step-edge widths relative to those images' (defocus: below 1; motion: about 1; a
     blur of part of the view: above 1); None as above."""
+    isotropy: Optional[float] = None
+    """How alike the orientations lost their fine detail: log of the detail tensor's larger eigenvalue over log of
+    its smaller, relative to the reference images' tensor (defocus: near 1; motion: lower); None for an image that
+    lost none or a flat image."""
 
     def evidence(self) -> dict:
         """The numbers as a JSON-ready dict (rounded)."""
@@ -181,6 +202,50 @@ def _width_evidence(feats: Sequence[ImageFeatures], cfg: EstimateConfig) -> tupl
     return np.where(known, soft_width, np.nan), np.where(known, spread, np.nan)
 
 
+def _detail_evidence(
+    feats: Sequence[ImageFeatures], ref: np.ndarray, sharp_idx: list[int]
+) -> tuple[np.ndarray, float]:
+    """Detail tensors relative to the reference images' -> (isotropy [n], NaN where undefined; spread of the sharp
+    images other than the references, inf when none is left to measure it).
+
+    Each image's tensor is whitened by the element-wise median of the references' tensors; its eigenvalues are
+    then the shares of fine detail kept along its two principal orientations. isotropy = log(larger) /
+    log(smaller): 1 when both lost the same share, 0 when one lost none.
+    """
+    tensors = np.stack([f.detail_tensor for f in feats])  # [n, 2, 2]
+    base = np.median(tensors[ref], axis=0)
+    n = len(feats)
+    if not np.all(np.isfinite(base)):
+        return np.full(n, np.nan), math.inf
+    values, vectors = np.linalg.eigh(base)
+    if values.min() <= 0:
+        return np.full(n, np.nan), math.inf
+    whiten = vectors @ np.diag(values**-0.5) @ vectors.T
+    log_eig = np.full((n, 2), np.nan)
+    for i, t in enumerate(tensors):
+        if np.all(np.isfinite(t)):
+            log_eig[i] = np.log(np.maximum(np.linalg.eigvalsh(whiten @ t @ whiten), 1e-12))  # ascending
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # 0 when the least-blurred orientation kept all its detail (or more, by content); NaN when none lost any
+        isotropy = np.where(log_eig[:, 0] < 0, np.maximum(log_eig[:, 1] / log_eig[:, 0], 0.0), np.nan)
+    ref_set = set(ref.tolist())
+    others = [i for i in sharp_idx if i not in ref_set and np.all(np.isfinite(log_eig[i]))]
+    spread = float(np.median([np.abs(log_eig[i]).max() for i in others])) if others else math.inf
+    return isotropy, spread
+
+
+def _kind_from_isotropy(isotropy: float, width_spread: float, cfg: EstimateConfig) -> str:
+    """motion, defocus or unknown from the detail isotropy; the edge-width spread must agree (NaN: no evidence)."""
+    if not isotropy < cfg.defocus_isotropy:  # NaN included: only a measured isotropy names a kind
+        label = "defocus" if isotropy > cfg.defocus_isotropy else "unknown"
+    else:
+        label = "motion" if isotropy < cfg.motion_isotropy else "unknown"
+    limit = {"motion": cfg.max_motion_width_spread, "defocus": cfg.max_defocus_width_spread}.get(label)
+    if limit is not None and width_spread > limit:
+        return "unknown"
+    return label
+
+
 def _grid_factor(feats: Sequence[ImageFeatures], ref: np.ndarray, cfg: EstimateConfig) -> list[tuple[int, float]]:
     """(factor snapped to MIXRES_GROUPS, score) per image; factor 1 without a grid.
 
@@ -232,8 +297,11 @@ def estimate_from_features(
     grid = _grid_factor(feats, ref, cfg)
     ref_set = set(ref.tolist())
     trusted_ref = ref_edge >= cfg.min_reference_edge_ratio and n >= cfg.min_set_size
-    noise = _content_anisotropy(by_angle, [i for i in range(n) if sharp[i] >= cfg.sharp_threshold and not soft[i]])
+    sharp_idx = [i for i in range(n) if sharp[i] >= cfg.sharp_threshold and not soft[i]]
+    noise = _content_anisotropy(by_angle, sharp_idx)
     direction_ok = noise < cfg.max_content_anisotropy
+    isotropy, detail_spread = _detail_evidence(feats, ref, sharp_idx)
+    detail_ok = detail_spread <= cfg.max_detail_spread
     out = []
     for i in range(n):
         factor, gscore = grid[i]
@@ -260,6 +328,11 @@ def estimate_from_features(
                 conf = min(conf_blur, _confidence(aniso[i] + 1e-3, cfg.anisotropy_threshold, 2.0))
             else:
                 label, conf = "unknown", 0.0
+            if label == "unknown" and detail_ok:
+                label = _kind_from_isotropy(isotropy[i], width_spread[i], cfg)
+                if label != "unknown":
+                    threshold = cfg.motion_isotropy if label == "motion" else cfg.defocus_isotropy
+                    conf = min(conf_blur, _confidence(isotropy[i], threshold, 1.25))
         out.append(
             DegradationEstimate(
                 label=label,
@@ -274,6 +347,7 @@ def estimate_from_features(
                 reference=i in ref_set,
                 soft_width=None if math.isnan(soft_width[i]) else float(soft_width[i]),
                 width_spread=None if math.isnan(width_spread[i]) else float(width_spread[i]),
+                isotropy=None if math.isnan(isotropy[i]) else float(isotropy[i]),
             )
         )
     return out
@@ -292,4 +366,11 @@ def estimate_degradations(
     return estimate_from_features(feats, cfg)
 
 
-__all__ = ["LABELS", "EstimateConfig", "DegradationEstimate", "estimate_degradations", "estimate_from_features"]
+__all__ = [
+    "LABELS",
+    "METHOD_VERSION",
+    "EstimateConfig",
+    "DegradationEstimate",
+    "estimate_degradations",
+    "estimate_from_features",
+]

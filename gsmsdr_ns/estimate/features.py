@@ -41,6 +41,9 @@ class ImageFeatures:
     soft_edge_width: float
     """The same at the 90th percentile (the image's softest step edges): a blur of part of the view (a lens
     focused on one depth) widens these while the sharpest edges stay sharp."""
+    detail_tensor: np.ndarray
+    """[2, 2] the fine-scale gradient structure tensor whitened by the coarse-scale one (:func:`detail_tensor`):
+    how much fine detail each orientation holds for its coarse structure; NaN for a flat image."""
     grid_scores: dict[int, float]
     """Per factor f in 2..4: periodicity of the grey image's second (third) differences at the knot spacing of an
     upsampling from 1/f of the size (:func:`grid_scores`); about 1 for images that were not upsampled."""
@@ -111,6 +114,32 @@ def edge_sharpness(
     which = np.minimum((angle / math.pi * bins).astype(int), bins - 1)
     per_bin = np.array([np.median(ratio[which == b]) if (which == b).sum() >= 8 else np.nan for b in range(bins)])
     return float(np.median(ratio)), per_bin
+
+
+def _structure_tensor(grad: Tensor) -> np.ndarray:
+    """grad: [2, H, W] (d/dx, d/dy) -> [2, 2] mean outer product of the gradient."""
+    gx, gy = grad[0].to(torch.float64), grad[1].to(torch.float64)
+    xy = float((gx * gy).mean())
+    return np.array([[float((gx * gx).mean()), xy], [xy, float((gy * gy).mean())]])
+
+
+def detail_tensor(gray: Tensor, sigma: float = 2.0) -> np.ndarray:
+    """Fine detail per orientation, relative to the coarse structure. gray: [H, W] -> [2, 2].
+
+    The structure tensor J_f of the image's gradient, whitened by J_c, that of the image blurred by `sigma`:
+    J_c^-1/2 J_f J_c^-1/2. The view's content shapes both tensors alike, so what is left is how much detail
+    each orientation lost: a blur of every orientation alike (defocus) scales the tensor, a blur along one
+    direction (motion) shrinks it along that direction only. NaN [2, 2] for a flat image.
+    """
+    x = gray.to(torch.float32)
+    m = int(math.ceil(3 * sigma))  # the border rows (the filter's reach) are biased by the padding
+    fine = _structure_tensor(sobel_gradient(x)[:, m:-m, m:-m])
+    coarse = _structure_tensor(sobel_gradient(gaussian_smooth(x, sigma))[:, m:-m, m:-m])
+    values, vectors = np.linalg.eigh(coarse)
+    if not np.all(np.isfinite(values)) or values.min() <= 1e-12 * max(values.max(), 1e-300):
+        return np.full((2, 2), np.nan)
+    whiten = vectors @ np.diag(values**-0.5) @ vectors.T
+    return whiten @ fine @ whiten
 
 
 def edge_width(
@@ -226,6 +255,7 @@ def image_features(rgb: np.ndarray | Tensor, coarse_sigma: float = 2.0, max_size
         edge_ratio_by_angle=edge[1],
         edge_width=width[0],
         soft_edge_width=width[1],
+        detail_tensor=detail_tensor(gray, coarse_sigma),
         grid_scores=grid_scores(full),
     )
 
@@ -240,6 +270,7 @@ __all__ = [
     "grid_scores",
     "edge_sharpness",
     "edge_width",
+    "detail_tensor",
     "analysis_view",
     "image_features",
 ]

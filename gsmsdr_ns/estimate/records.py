@@ -25,7 +25,7 @@ from ..data.degradation_schema import check_entry
 from ..io.atomic import write_json_atomic
 from ..io.errors import InputError
 from ..io.images import list_images, read_image
-from .classify import DegradationEstimate, EstimateConfig, estimate_degradations
+from .classify import METHOD_VERSION, DegradationEstimate, EstimateConfig, estimate_degradations
 
 ESTIMATED = "estimated"
 """Value of an entry's ``"source"`` key that marks it as estimated (not a true record)."""
@@ -106,14 +106,15 @@ def merge_entries(
             continue
         images[name] = entry
     doc["images"] = dict(sorted(images.items()))
-    doc["estimate"] = {"generator": GENERATOR, "images": source, "config": _config_dict(config)}
+    doc["estimate"] = {"generator": GENERATOR, "images": source, "config": estimate_fingerprint(config)}
     return doc, kept
 
 
-def _config_dict(config: EstimateConfig) -> Dict[str, Any]:
+def estimate_fingerprint(config: Optional[EstimateConfig] = None) -> Dict[str, Any]:
+    """What an estimate depends on besides the images: the config and the method's version (JSON-ready)."""
     from dataclasses import asdict
 
-    return asdict(config)
+    return {**asdict(config or EstimateConfig()), "method_version": METHOD_VERSION}
 
 
 def write_scene_estimate(
@@ -168,7 +169,7 @@ def estimate_scene_records(
     names = list_images(folder)
     if not names:
         read_folder(folder, names)  # the clear "no images" error
-    key = {"images": images_dir, "files": _fingerprints(folder, names), "config": _config_dict(cfg)}
+    key = {"images": images_dir, "files": _fingerprints(folder, names), "config": estimate_fingerprint(cfg)}
     cache_path = scene_dir / CACHE_FILE
     if cache and cache_path.is_file():
         try:
@@ -197,6 +198,7 @@ __all__ = [
     "ESTIMATED",
     "CACHE_FILE",
     "entry_from_estimate",
+    "estimate_fingerprint",
     "is_estimated",
     "read_folder",
     "estimate_entries",
