@@ -319,8 +319,9 @@ def _fern_set() -> list[np.ndarray]:
 
 
 def test_small_real_photos_get_their_kind_of_blur_from_the_detail_tensor():
-    # At 252x189 a photo has too few step edges per orientation for the orientation rule, which leaves the kind
-    # unknown; the detail tensors, relative to the sharp photos' (views of one scene), name it.
+    # At 252x189 the sharp photos' per-orientation edge steepness differs too much from photo to photo for the
+    # orientation rule, which leaves the kind unknown; the detail tensors, relative to the sharp photos' (views of
+    # one scene), name it.
     images = _fern_set()
     estimates = estimate_degradations(images)
     labels = [e.label for e in estimates]
