@@ -20,9 +20,10 @@ image is compared with them.
   view), or when fewer than two sharp images leave that spread unmeasured.
 * **motion / defocus, second opinion**: where that rule leaves the kind unknown, the image's detail tensor
   (:func:`~gsmsdr_ns.estimate.features.detail_tensor`, relative to the reference images') decides: defocus
-  shrinks it alike along every orientation, motion blur mostly along one. It needs no edge of each orientation
-  (small photos have few), but it is trusted only when the set's other sharp images match the references' tensor
-  closely (views of one scene), and the edge widths must agree with the kind as above.
+  shrinks it alike along every orientation, motion blur mostly along one. It sums over the whole image instead of
+  comparing orientations bin by bin (on small photos, sharp views of one scene disagree bin by bin), but it is
+  trusted only when the set's other sharp images match the references' tensor closely (views of one scene), and
+  the edge widths must agree with the kind as above.
 """
 
 from __future__ import annotations
