@@ -178,11 +178,16 @@ def test_empty_folder_and_missing_arguments_give_clear_errors(tmp_path):
     assert not (tmp_path / "degradation.json").exists()
 
 
-def test_images_folder_is_printed_not_written(capture, tmp_path):
+def test_images_folder_is_printed_not_written(capture, tmp_path, capsys):
     scene = _copy_scene(capture[0], tmp_path / "scene")
     entries = parse(["--images", str(scene / "images")]).main()
     assert entries["view_20.png"]["estimate"]["label"] == "motion"
     assert sorted(p.name for p in scene.iterdir()) == ["images"]
+    # each row shows the evidence of both kind rules: the orientation spread and the detail isotropy
+    row = next(line for line in capsys.readouterr().out.splitlines() if "view_21" in line)
+    evidence = entries["view_21.png"]["estimate"]
+    cells = [c.strip() for c in row.split("│")]
+    assert f"{evidence['anisotropy']:.2f}" in cells and f"{evidence['isotropy']:.2f}" in cells
 
 
 def test_scene_records_are_cached_until_an_image_changes(capture, tmp_path):

@@ -71,12 +71,13 @@ class EstimateCLI:
 
     @staticmethod
     def _print(entries: Dict[str, Dict[str, Any]]) -> None:
-        table = Table("image", "label", "confidence", "sharpness", "anisotropy", "mixres factor")
+        table = Table("image", "label", "confidence", "sharpness", "anisotropy", "isotropy", "mixres factor")
         for name, entry in entries.items():
             ev = entry["estimate"]
-            factor = ev["mixres_factor"]
+            factor, isotropy = ev["mixres_factor"], ev["isotropy"]
             table.add_row(name, ev["label"], f"{ev['confidence']:.2f}", f"{ev['sharpness']:.2f}",
-                          f"{ev['anisotropy']:.2f}", "?" if factor is None else str(factor))  # fmt: skip
+                          f"{ev['anisotropy']:.2f}", "-" if isotropy is None else f"{isotropy:.2f}",
+                          "?" if factor is None else str(factor))  # fmt: skip
         CONSOLE.print(table)
 
 
