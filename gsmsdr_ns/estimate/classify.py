@@ -35,7 +35,7 @@ from typing import Optional, Sequence
 import numpy as np
 from torch import Tensor
 
-from .features import MIXRES_GROUPS, ImageFeatures, image_features
+from .features import MIXRES_GROUPS, ImageFeatures, image_features, inverse_sqrt
 
 LABELS = ("sharp", "motion", "defocus", "mixres", "unknown")
 METHOD_VERSION = 2
@@ -216,12 +216,9 @@ def _detail_evidence(
     tensors = np.stack([f.detail_tensor for f in feats])  # [n, 2, 2]
     base = np.median(tensors[ref], axis=0)
     n = len(feats)
-    if not np.all(np.isfinite(base)):
+    whiten = inverse_sqrt(base) if np.all(np.isfinite(base)) else None
+    if whiten is None:
         return np.full(n, np.nan), math.inf
-    values, vectors = np.linalg.eigh(base)
-    if values.min() <= 0:
-        return np.full(n, np.nan), math.inf
-    whiten = vectors @ np.diag(values**-0.5) @ vectors.T
     log_eig = np.full((n, 2), np.nan)
     for i, t in enumerate(tensors):
         if np.all(np.isfinite(t)):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 import torch
@@ -84,6 +85,14 @@ def sobel_gradient(gray: Tensor) -> Tensor:
     return torch.stack([gx, gy])
 
 
+def scale_gradients(gray: Tensor, sigma: float) -> Tensor:
+    """Sobel gradients of gray [H, W] at full resolution and after a Gaussian blur of `sigma` px, without the
+    border rows the blur's reach biases -> [2 (fine, coarse), 2 (d/dx, d/dy), H - 2m, W - 2m], m = ceil(3 sigma)."""
+    x = gray.to(torch.float32)  # float32: the filters cost a fraction of float64's
+    m = int(math.ceil(3 * sigma))
+    return torch.stack([sobel_gradient(x), sobel_gradient(gaussian_smooth(x, sigma))])[:, :, m:-m, m:-m]
+
+
 def edge_sharpness(
     gray: Tensor, sigma: float = 2.0, top_fraction: float = 0.05, bins: int = 8
 ) -> tuple[float, np.ndarray]:
@@ -95,11 +104,12 @@ def edge_sharpness(
     -> (median ratio, [bins] median ratio of the edges whose normal lies in each orientation bin over [0, pi);
     NaN for a bin without edges). Motion blur lowers the ratio only for edges across its direction.
     """
-    x = gray.to(torch.float32)  # float32: the filters cost a fraction of float64's
-    g_fine = sobel_gradient(x)  # [2, H, W]
-    g_coarse = sobel_gradient(gaussian_smooth(x, sigma))
-    m = int(math.ceil(3 * sigma))  # the border rows (the filter's reach) are biased by the padding
-    g_fine, g_coarse = g_fine[:, m:-m, m:-m], g_coarse[:, m:-m, m:-m]
+    return _edge_sharpness(scale_gradients(gray, sigma), top_fraction, bins)
+
+
+def _edge_sharpness(grads: Tensor, top_fraction: float = 0.05, bins: int = 8) -> tuple[float, np.ndarray]:
+    """:func:`edge_sharpness` from ``grads`` [2, 2, h, w] of :func:`scale_gradients`."""
+    g_fine, g_coarse = grads[0], grads[1]
     # hypot, not norm(dim=0): the vector norm over the leading axis of these slices is many times slower
     mag_coarse = torch.hypot(g_coarse[0], g_coarse[1]).flatten()
     mag_fine = torch.hypot(g_fine[0], g_fine[1]).flatten()
@@ -123,6 +133,15 @@ def _structure_tensor(grad: Tensor) -> np.ndarray:
     return np.array([[float((gx * gx).mean()), xy], [xy, float((gy * gy).mean())]])
 
 
+def inverse_sqrt(matrix: np.ndarray) -> Optional[np.ndarray]:
+    """matrix^-1/2 of a symmetric matrix [2, 2]; None unless it is finite and positive definite (its smallest
+    eigenvalue above 1e-12 of its largest)."""
+    values, vectors = np.linalg.eigh(matrix)
+    if not np.all(np.isfinite(values)) or values.min() <= 1e-12 * max(values.max(), 1e-300):
+        return None
+    return vectors @ np.diag(values**-0.5) @ vectors.T
+
+
 def detail_tensor(gray: Tensor, sigma: float = 2.0) -> np.ndarray:
     """Fine detail per orientation, relative to the coarse structure. gray: [H, W] -> [2, 2].
 
@@ -131,15 +150,15 @@ def detail_tensor(gray: Tensor, sigma: float = 2.0) -> np.ndarray:
     each orientation lost: a blur of every orientation alike (defocus) scales the tensor, a blur along one
     direction (motion) shrinks it along that direction only. NaN [2, 2] for a flat image.
     """
-    x = gray.to(torch.float32)
-    m = int(math.ceil(3 * sigma))  # the border rows (the filter's reach) are biased by the padding
-    fine = _structure_tensor(sobel_gradient(x)[:, m:-m, m:-m])
-    coarse = _structure_tensor(sobel_gradient(gaussian_smooth(x, sigma))[:, m:-m, m:-m])
-    values, vectors = np.linalg.eigh(coarse)
-    if not np.all(np.isfinite(values)) or values.min() <= 1e-12 * max(values.max(), 1e-300):
+    return _detail_tensor(scale_gradients(gray, sigma))
+
+
+def _detail_tensor(grads: Tensor) -> np.ndarray:
+    """:func:`detail_tensor` from ``grads`` [2, 2, h, w] of :func:`scale_gradients`."""
+    whiten = inverse_sqrt(_structure_tensor(grads[1]))
+    if whiten is None:
         return np.full((2, 2), np.nan)
-    whiten = vectors @ np.diag(values**-0.5) @ vectors.T
-    return whiten @ fine @ whiten
+    return whiten @ _structure_tensor(grads[0]) @ whiten
 
 
 def edge_width(
@@ -245,7 +264,8 @@ def image_features(rgb: np.ndarray | Tensor, coarse_sigma: float = 2.0, max_size
     if H < 16 or W < 16:
         raise ValueError(f"image of {W}x{H} px is too small to estimate its degradation (need >= 16x16)")
     gray = analysis_view(full, max_size)
-    edge = edge_sharpness(gray, coarse_sigma)
+    grads = scale_gradients(gray, coarse_sigma)  # shared by the edge steepness and the detail tensor
+    edge = _edge_sharpness(grads)
     width = edge_width(gray)
     return ImageFeatures(
         width=W,
@@ -255,7 +275,7 @@ def image_features(rgb: np.ndarray | Tensor, coarse_sigma: float = 2.0, max_size
         edge_ratio_by_angle=edge[1],
         edge_width=width[0],
         soft_edge_width=width[1],
-        detail_tensor=detail_tensor(gray, coarse_sigma),
+        detail_tensor=_detail_tensor(grads),
         grid_scores=grid_scores(full),
     )
 
@@ -271,6 +291,8 @@ __all__ = [
     "edge_sharpness",
     "edge_width",
     "detail_tensor",
+    "inverse_sqrt",
+    "scale_gradients",
     "analysis_view",
     "image_features",
 ]
