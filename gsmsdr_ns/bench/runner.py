@@ -75,7 +75,7 @@ def fingerprint(suite: Suite, key: RunKey) -> str:
         payload["align_poses"] = True
     if method.degraded_poses:  # only then: the other methods' records keep their fingerprint
         payload["method"]["degraded_poses"] = True
-    if suite.scene(key.scene).real is not None and method.has_blur_field and not method.true_records:
+    if suite.scene(key.scene).trains_on_estimated_records(method):
         from gsmsdr_ns.estimate.records import estimate_fingerprint
 
         payload["estimate"] = estimate_fingerprint()  # a real-photo scene trains on the records estimated for it
@@ -250,8 +250,8 @@ def run_suite(
     console = console or Console(file=sys.stdout)
     machine = machine_info()
 
-    keys = suite.runs()
     todo, reused, skipped = plan_runs(suite, out)
+    total = len(todo) + len(reused) + len(skipped)  # plan_runs sorts every run of the suite into one of them
     lpips = None
     if suite.lpips and todo:
         lpips = make_lpips("cuda" if torch.cuda.is_available() else "cpu")
@@ -259,7 +259,7 @@ def run_suite(
         console.print("[yellow]LPIPS: torchvision's AlexNet weights are not in the torch hub cache; LPIPS is left out "
                       "(nothing is downloaded)[/yellow]")  # fmt: skip
 
-    console.print(f"suite [bold]{suite.name}[/bold]: {len(keys)} runs ({len(reused)} already finished, "
+    console.print(f"suite [bold]{suite.name}[/bold]: {total} runs ({len(reused)} already finished, "
                   f"{len(todo)} to train, {len(skipped)} skipped) -> {out}")  # fmt: skip
     trained: List[str] = []
     failed: Dict[str, str] = {}
@@ -275,7 +275,7 @@ def run_suite(
     try:
         with Progress(*columns, console=console, disable=not progress, redirect_stdout=False,
                       redirect_stderr=False) as bars:  # fmt: skip
-            suite_task = bars.add_task(f"{suite.name}", total=len(keys), completed=len(keys) - len(todo), info="")
+            suite_task = bars.add_task(f"{suite.name}", total=total, completed=total - len(todo), info="")
             for key in todo:
                 current = key.id
                 run_task = bars.add_task(f"  {key.scene} {key.method} s{key.seed}", total=key.steps, info="")

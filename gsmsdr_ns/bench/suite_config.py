@@ -46,6 +46,17 @@ class SceneEntry:
         """False for the sharp upper bound on a user scene without ``sharp_path``."""
         return not method.sharp_data or self.generated or self.sharp_path is not None
 
+    @staticmethod
+    def _records(method: MethodSpec) -> str:
+        """Which twin of a real-photo scene ``method`` trains on: "true" (the true records) or "estimated" (no
+        records: the dataparser estimates them)."""
+        return "true" if method.true_records and not method.sharp_data else "estimated"
+
+    def trains_on_estimated_records(self, method: MethodSpec) -> bool:
+        """Whether ``method``'s model reads records the dataparser estimates (a blur model on a real-photo scene's
+        twin without records)."""
+        return self.real is not None and method.has_blur_field and self._records(method) == "estimated"
+
     def data(self, method: MethodSpec, scene_root: Path, log: Optional[Callable[[str], None]] = None) -> Path:
         """The scene folder ``method`` trains on (generated on first use, under ``scene_root/scenes``)."""
         if self.spec is not None:
@@ -59,8 +70,7 @@ class SceneEntry:
             if method.sharp_data and method.degraded_poses:
                 return ensure_real_scene(scene_root, self.real, log=log, photos="sharp")
             real = self.real.sharp_twin() if method.sharp_data else self.real
-            records = "true" if method.true_records and not method.sharp_data else "estimated"
-            return ensure_real_scene(scene_root, real, records, log=log)
+            return ensure_real_scene(scene_root, real, self._records(method), log=log)
         path = self.sharp_path if method.sharp_data else self.path
         assert path is not None
         return path
