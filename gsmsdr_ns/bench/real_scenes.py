@@ -39,8 +39,9 @@ from gsmsdr_ns.io.colmap import quiet_pycolmap
 from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.io.photo_sets import DATA_DIR_ENV, photo_set_roots
 
-REAL_SCENE_VERSION = 1
-"""Bumped when built real scenes change for the same spec, so cached scenes of an older builder are not reused."""
+REAL_SCENE_VERSION = 2
+"""Bumped when built real scenes change for the same spec, so cached scenes of an older builder are not reused
+(2: ``gsmsdr-degrade`` crops the border its blur filled from outside the photos)."""
 COMPOSED_LAYOUT_VERSION = 3
 """Bumped when the layout of the scenes the methods train on changes (the structure-from-motion steps are reused)."""
 REGISTRATION_FILE = "registration.json"
@@ -349,7 +350,8 @@ def ensure_real_scene(bench_dir: Path, spec: RealSceneSpec, records: str = "esti
         names = sorted(p.name for p in (degraded / "images").iterdir())
         split = [(name, split_of(index, spec.hold)) for index, name in enumerate(names)]
         train, test = [n for n, s in split if s == "train"], [n for n, s in split if s == "test"]
-        sharp = None if photos == "degraded" else _ensure_degraded(root, spec.sharp_twin(), sharp_scene, log) / "images"
+        # the degraded scene's sharp twins: the originals cropped as the degraded photos were
+        sharp = None if photos == "degraded" else degraded / "images_test"
         map_and_register(degraded / "images", train, test, registered, spec, log, written_photos=sharp)
     with atomic_dir(out) as tmp:
         facts = compose_scene(tmp, registered, spec.hold, spec.train_downscale)

@@ -94,9 +94,10 @@ class SceneEntry:
         if self.spec is not None:
             return {"generated": dataclasses.asdict(self.spec)}
         if self.real is not None:
-            from gsmsdr_ns.bench.real_scenes import COMPOSED_LAYOUT_VERSION
+            from gsmsdr_ns.bench.real_scenes import COMPOSED_LAYOUT_VERSION, REAL_SCENE_VERSION
 
-            return {"real": dataclasses.asdict(self.real), "layout": COMPOSED_LAYOUT_VERSION}
+            return {"real": dataclasses.asdict(self.real), "layout": COMPOSED_LAYOUT_VERSION,
+                    "builder": REAL_SCENE_VERSION}  # fmt: skip
         return {"path": str(self.path), "sharp_path": None if self.sharp_path is None else str(self.sharp_path)}
 
 

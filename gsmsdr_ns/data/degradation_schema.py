@@ -96,6 +96,7 @@ EFFECT_FIELDS: Dict[str, Dict[str, Field]] = {
         "model": Field("str", choices=("trajectory", "rotational_shake", "kernel", ESTIMATED_MODEL)),
         "blur_px": NON_NEGATIVE,
         "max_displacement_px": NON_NEGATIVE,
+        "border_reach_px": NON_NEGATIVE,
         "samples": POSITIVE_INT,
         "kernel_size": POSITIVE_INT,
         "keyframes": POSITIVE_INT,
@@ -110,6 +111,7 @@ EFFECT_FIELDS: Dict[str, Dict[str, Field]] = {
     "defocus": {
         "model": Field("str", choices=("thin_lens", "disk", ESTIMATED_MODEL)),
         "radius_px": NON_NEGATIVE,
+        "border_reach_px": NON_NEGATIVE,
         "max_coc_px": NON_NEGATIVE,
         "focus_distance": Field("number", minimum=0),
         "focus_quantile": Field("number", minimum=0, maximum=1),
@@ -155,6 +157,7 @@ DOCUMENT_FIELDS: Dict[str, Field] = {
     "assignment": TEXT,
     "config": Field("dict"),
     "estimate": Field("dict"),
+    "border_crop_px": Field("int", minimum=0),
 }
 """Top-level fields other than ``version`` and ``images`` (checked by the reader itself)."""
 

@@ -160,6 +160,11 @@ class DegradeConfig:
     """Blur (motion, defocus) in linear light: sRGB-decode before and encode after, as a sensor integrates light."""
     workers: int = 0
     """Processes degrading views in parallel; 0 picks one per CPU core when there are enough views."""
+    crop_border: bool = True
+    """Photos (a scene that cannot be re-rendered): crop every image, sharp twins included, by the widest border
+    band any view's blur filled from outside the photo (reflected pixels no camera records; the records'
+    ``border_reach_px``); the principal point moves with the crop. Generated scenes re-render their margins and
+    are never cropped."""
     motion: MotionConfig = field(default_factory=MotionConfig)
     """Motion blur parameters."""
     defocus: DefocusConfig = field(default_factory=DefocusConfig)

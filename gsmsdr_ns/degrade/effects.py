@@ -36,7 +36,7 @@ from .kernels import (
     radius_levels,
     rotational_shake_blur,
 )
-from .trajectory import calibrated_shake, pixel_paths, probe_points, sample_times, smooth_path
+from .trajectory import border_reach_px, calibrated_shake, pixel_paths, probe_points, sample_times, smooth_path
 
 STREAMS = {"motion": 1, "defocus": 2, "mixres": 3, "noise": 4, "assignment": 5}
 """Random stream ids: view i's effect e draws from default_rng([seed, STREAMS[e], i])."""
@@ -98,7 +98,7 @@ def motion_effect(image: Tensor, ctx: ViewContext, cfg: MotionConfig, rng: np.ra
         kernel = motion_kernel_from_trajectory(path)
         out = convolve_psf(image, kernel.to(image.dtype))
         rec = {"model": "kernel", "blur_px": _r(target), "samples": T, "kernel_size": int(kernel.shape[-1]),
-               "trajectory_px": np.round(path, 6).tolist()}  # fmt: skip
+               "border_reach_px": float(kernel.shape[-1] // 2), "trajectory_px": np.round(path, 6).tolist()}  # fmt: skip
         return out, rec
     if model == "rotational_shake":
         traj, ext = calibrated_shake(
@@ -106,8 +106,10 @@ def motion_effect(image: Tensor, ctx: ViewContext, cfg: MotionConfig, rng: np.ra
         )
         R, _ = traj.reference_to_camera()
         out = rotational_shake_blur(image, ctx.K, R)
+        reach = border_reach_px(ctx.K, traj, ctx.width, ctx.height)
         rec = {"model": "rotational_shake", "blur_px": _r(target), "max_displacement_px": _r(ext, 4), "samples": T,
-               "reference": "mid_exposure", "pose": "camera_to_reference", **traj.to_json()}  # fmt: skip
+               "border_reach_px": _r(reach, 4), "reference": "mid_exposure", "pose": "camera_to_reference",
+               **traj.to_json()}  # fmt: skip
         rec.pop("translations")
         return out, rec
     return _trajectory_motion(ctx, cfg, rng, target, T, image.dtype)
@@ -182,7 +184,8 @@ def defocus_effect(
         raise ValueError("defocus model 'thin_lens' needs a depth map (depth/<stem>.npy)")
     coc = float(rng.uniform(cfg.min_coc_px, cfg.max_coc_px)) * ctx.px_scale
     if model == "disk":
-        return disk_blur(image, 0.5 * coc), {"model": "disk", "radius_px": _r(0.5 * coc), "max_coc_px": _r(coc)}
+        return disk_blur(image, 0.5 * coc), {"model": "disk", "radius_px": _r(0.5 * coc), "max_coc_px": _r(coc),
+                                             "border_reach_px": _r(0.5 * coc)}  # fmt: skip
     q = float(rng.uniform(cfg.focus_quantile_min, cfg.focus_quantile_max))
     depth = torch.as_tensor(ctx.depth, dtype=torch.float64)
     finite = depth[torch.isfinite(depth)]
@@ -196,7 +199,7 @@ def defocus_effect(
     levels = radius_levels(float(r.abs().max()), cfg.radius_step_px, cfg.radius_rel_step)
     rec = {"model": "thin_lens", "focus_distance": _r(d_f), "focus_quantile": _r(q, 6), "aperture": _r(aperture, 10),
            "max_coc_px": _r(coc), "focal_px": _r(f_px), "radius_step_px": cfg.radius_step_px,
-           "radius_levels": len(levels)}  # fmt: skip
+           "radius_levels": len(levels), "border_reach_px": _r(float(r.abs().max()), 4)}  # fmt: skip
     return out, rec
 
 

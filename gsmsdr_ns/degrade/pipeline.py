@@ -6,7 +6,7 @@ Output layout (contract: notes degrade_spec.md):
     <out>/sparse/0/                COLMAP model (PINHOLE), image ids 1..V in sorted-name order
     <out>/poses_bounds.npy         LLFF [V, 17]
     <out>/hold=<N>                 empty file
-    <out>/degradation.json         effects and exact parameters per image
+    <out>/degradation.json         effects and exact parameters per image (``border_crop_px``: see crop_border)
     <out>/depth/<stem>.npy         copied from the input when present (sharp z-depth)
     <out>/scene.json               copied from a generated input (generator config)
 """
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import multiprocessing
 import os
 import shutil
@@ -31,9 +32,10 @@ from .. import __version__
 from ..data.cameras import llff_poses_bounds_rows
 from ..io.atomic import atomic_dir, temp_sibling_dir
 from ..io.colmap import write_colmap_model
-from ..io.images import read_image_float, write_image
+from ..io.images import read_image, read_image_float, write_image
 from ..synth.config import SynthSceneConfig
 from ..synth.generate import check_target, to_uint8
+from ..synth.points import SparsePoints
 from .config import BLUR_EFFECTS, DegradeConfig
 from .effects import (
     ViewContext,
@@ -198,6 +200,62 @@ def llff_poses_bounds(
     return llff_poses_bounds_rows(c2w, np.asarray(sizes).reshape(V, 2), focal, bounds)
 
 
+# ------------------------------------------------------------------------------------------------ border crop
+
+
+def border_crop_px(records: list[dict]) -> int:
+    """Pixels to crop from each border of every image: the widest ``border_reach_px`` of any view's effects
+    (how far a blur read from outside the photo), rounded up; 0 when no effect reached outside."""
+    reach = [float(effect.get("border_reach_px", 0.0)) for r in records for effect in r["effects"].values()]
+    return int(math.ceil(max(reach, default=0.0) - 1e-6))
+
+
+def cropped_frame(src: SourceScene, margin: int) -> SourceScene:
+    """The scene's cameras and sparse points after cropping ``margin`` pixels from every image border: principal
+    points and point observations shift by -margin, observations that fall outside the crop are dropped."""
+    Ks = src.Ks.copy()
+    Ks[:, 0, 2] -= margin
+    Ks[:, 1, 2] -= margin
+    sizes = [(w - 2 * margin, h - 2 * margin) for w, h in src.sizes]
+    points = src.points
+    if points is not None:
+        uv = points.obs_uv - margin
+        limits = np.asarray(sizes, dtype=np.float64)[points.obs_view]
+        keep = np.all((uv >= 0) & (uv <= limits), axis=1)
+        points = SparsePoints(xyz=points.xyz, rgb=points.rgb, obs_point=points.obs_point[keep],
+                              obs_view=points.obs_view[keep], obs_uv=uv[keep])  # fmt: skip
+    return dataclasses.replace(src, Ks=Ks, sizes=sizes, points=points)
+
+
+def _check_crop(src: SourceScene, margin: int) -> None:
+    """Refuse a crop that would leave less than half of an image's width or height."""
+    width, height = min(w for w, _ in src.sizes), min(h for _, h in src.sizes)
+    if 4 * margin > min(width, height):
+        raise ValueError(
+            f"the simulated blur reaches {margin} px into the photos' borders; cropping it would leave less than "
+            f"half of a {width}x{height} photo. Use a milder preset or larger photos, or --no-crop-border to keep "
+            "the reflected borders"
+        )
+
+
+def _crop_images(root: Path, names: list[str], margin: int) -> None:
+    """Crop ``margin`` pixels from every border of the written images (``images/`` and ``images_test/``)."""
+    for folder in ("images", "images_test"):
+        for name in names:
+            path = root / folder / name
+            write_image(path, read_image(path)[margin:-margin, margin:-margin])
+
+
+def _crop_records(records: list[dict], margin: int) -> None:
+    """Mixres records' low-resolution ``size`` after the crop (the factor is unchanged)."""
+    for record in records:
+        mixres = record["effects"].get("mixres")
+        if mixres is not None and "size" in mixres:
+            f = mixres["factor"]
+            w, h = mixres["size"]
+            mixres["size"] = [max(1, round((w * f - 2 * margin) / f)), max(1, round((h * f - 2 * margin) / f))]
+
+
 # ------------------------------------------------------------------------------------------------ the driver
 
 
@@ -243,11 +301,22 @@ def _run_jobs(jobs: list[ViewJob], workers: int, log: Callable[[str], None]) -> 
 
 
 def _write_metadata(
-    root: Path, src: SourceScene, jobs: list[ViewJob], records: list[dict], meta: dict, cfg: DegradeConfig
+    root: Path,
+    src: SourceScene,
+    jobs: list[ViewJob],
+    records: list[dict],
+    meta: dict,
+    cfg: DegradeConfig,
+    margin: int = 0,
 ) -> None:
+    """Cameras, poses_bounds, hold file, depth maps and degradation.json; ``margin``: the border crop the images
+    got (cameras, points and depth maps are cropped alike)."""
+    crop = (slice(margin, -margin), slice(margin, -margin)) if margin else (slice(None), slice(None))
+    depths = [np.load(p)[crop] if p is not None else None for p in src.depth_paths] if src.depth_paths else None
+    if margin:
+        src = cropped_frame(src, margin)
     points = src.points
     write_colmap_model(root / "sparse" / "0", src.names, src.Ks, src.sizes, src.w2cs, points)
-    depths = [np.load(p) if p is not None else None for p in src.depth_paths] if src.depth_paths else None
     pb = llff_poses_bounds(
         src.w2cs,
         src.Ks,
@@ -258,11 +327,16 @@ def _write_metadata(
     )
     np.save(root / "poses_bounds.npy", pb)
     (root / f"hold={cfg.hold}").touch()
-    if src.depth_paths and any(p is not None for p in src.depth_paths):
+    if depths is not None and any(d is not None for d in depths):
         (root / "depth").mkdir()
-        for name, p in zip(src.names, src.depth_paths):
-            if p is not None:
-                shutil.copyfile(p, root / "depth" / (Path(name).stem + ".npy"))
+        for name, path, depth in zip(src.names, src.depth_paths, depths):
+            if depth is None:
+                continue
+            target = root / "depth" / (Path(name).stem + ".npy")
+            if margin:
+                np.save(target, depth)
+            else:
+                shutil.copyfile(path, target)
     if src.synth_config is not None and (src.root / "scene.json").is_file():
         shutil.copyfile(src.root / "scene.json", root / "scene.json")
     doc = {
@@ -275,6 +349,7 @@ def _write_metadata(
         "preset": meta["preset"],
         "assignment": cfg.assignment,
         "config": dataclasses.asdict(cfg),
+        "border_crop_px": margin,
         "images": {j.name: r for j, r in zip(jobs, records)},
     }
     with open(root / "degradation.json", "w", encoding="utf8") as f:
@@ -329,8 +404,15 @@ def degrade_scene(
             (tmp / "images_test").mkdir()
             jobs = plan_views(src, cfg, tmp)
             records = _run_jobs(jobs, _num_workers(cfg, jobs), log)
+            margin = border_crop_px(records) if cfg.crop_border and src.synth_config is None else 0
+            if margin:
+                _check_crop(src, margin)
+                _crop_images(tmp, src.names, margin)
+                _crop_records(records, margin)
+                log(f"cropped {margin} px from every border of every image: the simulated blur read that far "
+                    "outside the photos")  # fmt: skip
             meta = {"generator": generator, "source": source_label or str(inp), "preset": preset}
-            _write_metadata(tmp, src, jobs, records, meta, cfg)
+            _write_metadata(tmp, src, jobs, records, meta, cfg, margin)
             check_target(out, overwrite)  # re-check: something may have appeared meanwhile
     finally:
         if work is not None:
@@ -338,4 +420,14 @@ def degrade_scene(
     return out
 
 
-__all__ = ["degrade_scene", "degrade_view", "plan_views", "llff_poses_bounds", "split_of", "ViewJob", "GENERATOR"]
+__all__ = [
+    "degrade_scene",
+    "degrade_view",
+    "plan_views",
+    "llff_poses_bounds",
+    "border_crop_px",
+    "cropped_frame",
+    "split_of",
+    "ViewJob",
+    "GENERATOR",
+]

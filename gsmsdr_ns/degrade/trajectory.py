@@ -102,6 +102,24 @@ def probe_points(width: int, height: int, n: int = 7) -> np.ndarray:
     return np.stack([xx.ravel(), yy.ravel()], -1)
 
 
+def border_points(width: int, height: int, per_edge: int = 33) -> np.ndarray:
+    """``per_edge`` pixel centres along each of the four image borders (corners included) -> [4 * per_edge, 2]
+    COLMAP pixels."""
+    xs = np.linspace(0.5, width - 0.5, per_edge)
+    ys = np.linspace(0.5, height - 0.5, per_edge)
+    top, bottom = np.stack([xs, np.full_like(xs, 0.5)], -1), np.stack([xs, np.full_like(xs, height - 0.5)], -1)
+    left, right = np.stack([np.full_like(ys, 0.5), ys], -1), np.stack([np.full_like(ys, width - 0.5), ys], -1)
+    return np.concatenate([top, bottom, left, right])
+
+
+def border_reach_px(K: np.ndarray, traj: ShakeTrajectory, width: int, height: int) -> float:
+    """How far the reference view's border pixels move over the shake (distant scene: rotation only): the width
+    of the band along the border whose blurred pixels read from outside the photo. K: [3, 3]."""
+    uv = border_points(width, height)
+    paths = pixel_paths(K, traj, uv, np.zeros(len(uv)))  # [T, N, 2]
+    return float((paths - torch.as_tensor(uv, dtype=paths.dtype)).norm(dim=-1).max())
+
+
 def calibrated_shake(
     rng: np.random.Generator,
     K: np.ndarray,
