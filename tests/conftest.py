@@ -181,6 +181,34 @@ def shared_fern() -> Path:
     return fern
 
 
+@dataclass
+class FernCapture:
+    """The first photos of the fern's ``images_16`` (252x189) with their LLFF poses."""
+
+    folder: Path  # llff-fern/images_16
+    names: list  # photo file names, sorted
+    c2w_opengl: "object"  # [N, 4, 4] camera-to-world, OpenGL axes (nerfstudio's transforms.json)
+    focal: float  # px at this size
+    size: tuple  # (width, height)
+
+
+def fern_capture(count: int) -> FernCapture:
+    """The first ``count`` fern photos at 252x189 with their poses from ``poses_bounds.npy``."""
+    import numpy as np
+    from PIL import Image
+
+    fern = shared_fern()
+    poses = np.load(fern / "poses_bounds.npy")[:count, :15].reshape(-1, 3, 5)
+    names = sorted(p.name for p in (fern / "images_16").iterdir())[:count]
+    with Image.open(fern / "images_16" / names[0]) as image:
+        w, h = image.size
+    focal = float(poses[0, 2, 4]) * w / float(poses[0, 1, 4])
+    llff = poses[:, :, :4]  # columns: down, right, back -> OpenGL right, up, back
+    c2w = np.concatenate([llff[..., 1:2], -llff[..., 0:1], llff[..., 2:3], llff[..., 3:4]], axis=-1)
+    bottom = np.broadcast_to(np.array([[0.0, 0.0, 0.0, 1.0]]), (len(names), 1, 4))
+    return FernCapture(fern / "images_16", names, np.concatenate([c2w, bottom], axis=1), focal, (w, h))
+
+
 def shaken_photo(path: Path, extent_px: float, drift_px: tuple = (-2.0, 3.0), samples: int = 25):
     """The photo at ``path`` [H, W, 3] uint8, blurred by a camera shake along a straight path: ``extent_px`` px wide
     in x (centred), from ``drift_px[0]`` to ``drift_px[1]`` px in y, sampled ``samples`` times."""

@@ -17,25 +17,20 @@ from gsmsdr_ns.degrade.kernels import rotational_shake_blur
 from gsmsdr_ns.degrade.trajectory import border_reach_px, calibrated_shake
 from gsmsdr_ns.io.colmap import read_colmap
 from gsmsdr_ns.io.images import read_image, read_image_float
-from conftest import shared_fern
+from conftest import fern_capture, shared_fern
 
 
 @pytest.fixture(scope="module")
 def photos(tmp_path_factory) -> Path:
     """6 real fern photos (252x189) with their LLFF poses as a pinhole transforms.json capture (no scene.json)."""
-    fern = shared_fern()
+    fern = fern_capture(6)
     root = tmp_path_factory.mktemp("photos") / "capture"
     (root / "images").mkdir(parents=True)
-    poses = np.load(fern / "poses_bounds.npy")[:, :15].reshape(-1, 3, 5)
-    names = sorted(p.name for p in (fern / "images_16").iterdir())[:6]
-    h, w = read_image(fern / "images_16" / names[0]).shape[:2]
-    focal = float(poses[0, 2, 4]) * w / float(poses[0, 1, 4])
+    (w, h), focal = fern.size, fern.focal
     frames = []
-    for i, name in enumerate(names):
-        (root / "images" / name).write_bytes((fern / "images_16" / name).read_bytes())
-        llff = poses[i, :, :4]  # columns: down, right, back -> OpenGL right, up, back
-        c2w = np.concatenate([llff[:, 1:2], -llff[:, 0:1], llff[:, 2:3], llff[:, 3:4]], axis=1)
-        frames.append({"file_path": f"images/{name}", "transform_matrix": np.vstack([c2w, [0, 0, 0, 1]]).tolist()})
+    for name, c2w in zip(fern.names, fern.c2w_opengl):
+        (root / "images" / name).write_bytes((fern.folder / name).read_bytes())
+        frames.append({"file_path": f"images/{name}", "transform_matrix": c2w.tolist()})
     meta = {"camera_model": "PINHOLE", "w": w, "h": h, "fl_x": focal, "fl_y": focal, "cx": w / 2, "cy": h / 2,
             "frames": frames}  # fmt: skip
     (root / "transforms.json").write_text(json.dumps(meta), encoding="utf8")

@@ -20,7 +20,7 @@ from gsmsdr_ns.degrade.undistort import describe_distortion
 from gsmsdr_ns.io.colmap import read_colmap
 from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.io.images import read_image_float, write_image
-from conftest import shared_fern
+from conftest import fern_capture
 
 K1 = 0.06
 
@@ -42,27 +42,21 @@ def pixel_grid(width: int, height: int) -> np.ndarray:
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> dict:
     """6 fern photos (252x189) distorted with k1 = 0.06 and their transforms.json (LLFF poses, OPENCV camera)."""
-    fern = shared_fern()
+    fern = fern_capture(6)
     root = tmp_path_factory.mktemp("distorted") / "capture"
     (root / "images").mkdir(parents=True)
-    poses = np.load(fern / "poses_bounds.npy")[:, :15].reshape(-1, 3, 5)
-    names = sorted(p.name for p in (fern / "images_16").iterdir())[:6]
-    sharp = read_image_float(fern / "images_16" / names[0])
-    h, w = sharp.shape[:2]
-    focal = float(poses[0, 2, 4]) * w / float(poses[0, 1, 4])
+    names, (w, h), focal = fern.names, fern.size, fern.focal
     camera = pycolmap.Camera(model="OPENCV", width=w, height=h, params=[focal, focal, w / 2, h / 2, K1, 0, 0, 0])
     # the distorted photo at pixel x shows the pinhole photo at K cam_from_img(x)
     rays = camera.cam_from_img(pixel_grid(w, h))
     source_xy = rays * focal + np.array([w / 2, h / 2])
     frames, originals = [], {}
-    for i, name in enumerate(names):
-        pinhole = read_image_float(fern / "images_16" / name)
+    for name, c2w in zip(names, fern.c2w_opengl):
+        pinhole = read_image_float(fern.folder / name)
         originals[name] = pinhole
         distorted = sample(pinhole, source_xy).reshape(h, w, 3)
         write_image(root / "images" / name, (np.clip(distorted, 0, 1) * 255 + 0.5).astype(np.uint8))
-        llff = poses[i, :, :4]  # columns: down, right, back -> OpenGL right, up, back
-        c2w = np.concatenate([llff[:, 1:2], -llff[:, 0:1], llff[:, 2:3], llff[:, 3:4]], axis=1)
-        frames.append({"file_path": f"images/{name}", "transform_matrix": np.vstack([c2w, [0, 0, 0, 1]]).tolist()})
+        frames.append({"file_path": f"images/{name}", "transform_matrix": c2w.tolist()})
     meta = {"camera_model": "OPENCV", "w": w, "h": h, "fl_x": focal, "fl_y": focal, "cx": w / 2, "cy": h / 2,
             "k1": K1, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": frames}  # fmt: skip
     (root / "transforms.json").write_text(json.dumps(meta), encoding="utf8")
