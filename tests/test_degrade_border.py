@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -109,3 +110,25 @@ def test_a_crop_that_would_leave_less_than_half_a_photo_is_refused(photos, tmp_p
     with pytest.raises(ValueError, match=r"reaches \d+ px into the photos' borders.*--no-crop-border"):
         degrade_scene(photos, tmp_path / "too-much", config)
     assert not (tmp_path / "too-much").exists()
+
+
+def test_depth_maps_of_photos_are_cropped_with_them(photos, tmp_path):
+    """Photos with depth maps are defocused by the thin lens; its widest circle sets the crop, and the depth maps
+    are cropped alike (they must keep matching their images)."""
+    scene = tmp_path / "with-depth"
+    shutil.copytree(photos, scene)
+    (scene / "depth").mkdir()
+    depths = {}
+    for k, name in enumerate(sorted(p.name for p in (scene / "images").iterdir())):
+        h, w = read_image(scene / "images" / name).shape[:2]
+        depths[name] = 2.0 + np.linspace(0.0, 3.0 + k, w)[None, :] + np.linspace(0.0, 1.0, h)[:, None]
+        np.save(scene / "depth" / (Path(name).stem + ".npy"), depths[name])
+    out = degrade_scene(scene, tmp_path / "defocus", _config("defocus"))
+    doc = json.loads((out / "degradation.json").read_text())
+    lenses = [r["effects"]["defocus"] for r in doc["images"].values() if r["effects"]]
+    m = doc["border_crop_px"]
+    assert all(d["model"] == "thin_lens" for d in lenses) and m == math.ceil(max(d["border_reach_px"] for d in lenses))
+    assert m >= 2
+    for name, depth in depths.items():
+        np.testing.assert_array_equal(np.load(out / "depth" / (Path(name).stem + ".npy")), depth[m:-m, m:-m])
+        assert read_image(out / "images" / name).shape[:2] == depth[m:-m, m:-m].shape
