@@ -179,7 +179,7 @@ class SuiteBench:
               f"{len(outcome.failed)} failed, {len(outcome.skipped)} skipped in {time.perf_counter() - started:.0f} s")
         print("wrote " + ", ".join(str(p) for p in outcome.outputs))
         if self.publish is not None:
-            print("published " + ", ".join(str(p) for p in publish_outputs(out, self.publish)))
+            print("published " + ", ".join(str(p) for p in publish_outputs(out, self.publish, outcome.outputs)))
         if outcome.failed:
             raise SystemExit(1)
 

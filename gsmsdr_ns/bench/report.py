@@ -356,13 +356,17 @@ PUBLISHED = ("results.md", "results.csv", "*.png")
 """The outputs a results folder gets (not ``runs/`` or ``scenes/``)."""
 
 
-def publish_outputs(out: Path, folder: Path) -> List[Path]:
+def publish_outputs(out: Path, folder: Path, files: Optional[Sequence[Path]] = None) -> List[Path]:
     """Copy results.md, results.csv and the PNG plots of the output folder ``out`` into ``folder`` (e.g.
-    ``docs/results/quick``), each written atomically; returns the copies."""
+    ``docs/results/quick``), each written atomically; returns the copies. ``files``: only these outputs (what
+    the suite just wrote: another suite sharing ``out`` leaves plots of its own scenes there)."""
     out, folder = Path(out), Path(folder)
     if folder.resolve() == out.resolve():
         return []
     sources = [p for pattern in PUBLISHED for p in sorted(out.glob(pattern)) if p.is_file()]
+    if files is not None:
+        wanted = {Path(f).resolve() for f in files}
+        sources = [p for p in sources if p.resolve() in wanted]
     if not sources:
         raise FileNotFoundError(f"{out} has no results.md, results.csv or plots to publish")
     return [copy_file_atomic(p, folder / p.name) for p in sources]
