@@ -16,7 +16,7 @@ import subprocess
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import List, Sequence, Tuple
 
 import pytest
 
@@ -186,10 +186,10 @@ class FernCapture:
     """The first photos of the fern's ``images_16`` (252x189) with their LLFF poses."""
 
     folder: Path  # llff-fern/images_16
-    names: list  # photo file names, sorted
-    c2w_opengl: "object"  # [N, 4, 4] camera-to-world, OpenGL axes (nerfstudio's transforms.json)
+    names: List[str]  # photo file names, sorted
+    c2w_opengl: "np.ndarray"  # [N, 4, 4] camera-to-world, OpenGL axes (nerfstudio's transforms.json)
     focal: float  # px at this size
-    size: tuple  # (width, height)
+    size: Tuple[int, int]  # (width, height)
 
 
 def fern_capture(count: int) -> FernCapture:

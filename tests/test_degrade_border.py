@@ -132,3 +132,17 @@ def test_depth_maps_of_photos_are_cropped_with_them(photos, tmp_path):
     for name, depth in depths.items():
         np.testing.assert_array_equal(np.load(out / "depth" / (Path(name).stem + ".npy")), depth[m:-m, m:-m])
         assert read_image(out / "images" / name).shape[:2] == depth[m:-m, m:-m].shape
+
+
+def test_mixres_records_give_the_cropped_views_low_resolution_size(photos, tmp_path):
+    config = _config("motion")
+    config.effects = ("motion", "mixres")
+    out = degrade_scene(photos, tmp_path / "mixed", config)
+    doc = json.loads((out / "degradation.json").read_text())
+    m = doc["border_crop_px"]
+    assert m > 0
+    for name, record in doc["images"].items():
+        if "mixres" in record["effects"]:
+            h, w = read_image(out / "images" / name).shape[:2]
+            f = record["effects"]["mixres"]["factor"]
+            assert record["effects"]["mixres"]["size"] == [max(1, round(w / f)), max(1, round(h / f))]

@@ -246,14 +246,15 @@ def _crop_images(root: Path, names: list[str], margin: int) -> None:
             write_image(path, read_image(path)[margin:-margin, margin:-margin])
 
 
-def _crop_records(records: list[dict], margin: int) -> None:
-    """Mixres records' low-resolution ``size`` after the crop (the factor is unchanged)."""
-    for record in records:
+def _crop_records(records: list[dict], jobs: list[ViewJob], margin: int) -> None:
+    """Mixres records' low-resolution ``size`` for the cropped view (``mixres_effect``'s rule; the factor is
+    unchanged)."""
+    for record, job in zip(records, jobs):
         mixres = record["effects"].get("mixres")
-        if mixres is not None and "size" in mixres:
+        if mixres is not None:
             f = mixres["factor"]
-            w, h = mixres["size"]
-            mixres["size"] = [max(1, round((w * f - 2 * margin) / f)), max(1, round((h * f - 2 * margin) / f))]
+            w, h = job.size[0] - 2 * margin, job.size[1] - 2 * margin
+            mixres["size"] = [max(1, round(w / f)), max(1, round(h / f))]
 
 
 # ------------------------------------------------------------------------------------------------ the driver
@@ -408,7 +409,7 @@ def degrade_scene(
             if margin:
                 _check_crop(src, margin)
                 _crop_images(tmp, src.names, margin)
-                _crop_records(records, margin)
+                _crop_records(records, jobs, margin)
                 log(f"cropped {margin} px from every border of every image: the simulated blur read that far "
                     "outside the photos")  # fmt: skip
             meta = {"generator": generator, "source": source_label or str(inp), "preset": preset}
