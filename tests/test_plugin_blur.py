@@ -152,6 +152,7 @@ def test_blur_field_is_never_evaluated_on_sharp_training_images(scenes, tmp_path
     for s in run.steps:
         degraded = s["step"] >= 2 and s["view"] not in sharp
         assert ("blur_mask_reg" in s["losses"]) == degraded, s
+        assert ("blur_deconvolved" in s["losses"]) == degraded, s  # a sharp image pays for no blur term
         assert ({"rgb_sharp", "blur_mask"} <= s["keys"]) == degraded, s
         if not degraded:
             assert "rgb_sharp" not in s["keys"] and s["keys"] == {"rgb", "depth", "accumulation", "background"}
@@ -628,3 +629,39 @@ def test_densification_gradient_of_blurred_views_is_scaled_when_asked():
     assert float(blurred.sum()) > 0
     torch.testing.assert_close(blurred_x3, 3.0 * blurred)
     torch.testing.assert_close(grad2d(3.0, 1), grad2d(1.0, 1))  # the sharp view
+
+
+@pytest.mark.parametrize("mode", ["full", "view"])
+def test_the_deconvolved_loss_weighs_a_blurred_views_residual_by_its_mean_kernel(mode):
+    """A blurred view's loss gets ``blur_deconvolved``: the weight times the mean square of its residual weighted by
+    the inverse of its mean kernel (the field's kernels blended with the mask); a sharp view gets none, nor does a
+    blurred view with the weight at 0."""
+    from gsmsdr_ns.blur.deconvolved_loss import deconvolved_residual
+
+    metadata = {"degradations": records("motion", 1) + records("sharp", 1)}
+    camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)
+    image = torch.rand(48, 64, 3, generator=torch.Generator().manual_seed(0))
+
+    def loss_terms(view: int, weight: float):
+        torch.manual_seed(0)
+        field = BlurFieldConfig(warmup=0, mode=mode, deconvolved_loss_weight=weight)
+        model = build(metadata, n=2, blur_field=field, background_color="black", num_downscales=0)
+        model.train()
+        model.optimizers = None  # no densification step here
+        model.step = 1
+        model.degradation.step(1)
+        camera.metadata = {"cam_idx": view}
+        outputs = model.get_outputs(camera)
+        return model.get_loss_dict(outputs, {"image": image}), outputs
+
+    losses, outputs = loss_terms(0, 10.0)
+    kernel = outputs["blur_kernel_mean"]
+    assert kernel.shape[0] == 1 and kernel.shape[1] == kernel.shape[2] and not kernel.requires_grad
+    torch.testing.assert_close(kernel.sum(), torch.tensor(1.0))
+    residual = (outputs["rgb"] - image).permute(2, 0, 1)[None]
+    expected = 10.0 * deconvolved_residual(residual, kernel, eps=0.01).square().mean()
+    torch.testing.assert_close(losses["blur_deconvolved"], expected)
+    assert losses["blur_deconvolved"].requires_grad  # it trains the Gaussians and the field
+    assert "blur_deconvolved" not in loss_terms(1, 10.0)[0]  # the sharp view
+    off, outputs = loss_terms(0, 0.0)
+    assert "blur_deconvolved" not in off and "blur_kernel_mean" not in outputs

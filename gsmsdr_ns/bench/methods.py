@@ -134,6 +134,8 @@ METHODS: Dict[str, MethodSpec] = {
         _method("full-lens-unknown", "GS-MSDR (full), thin lens on blur of unknown kind", "gsmsdr",
                 "full with the thin lens before the field on images whose kind of blur is unknown",
                 thin_lens_for_unknown_kind=True),  # fmt: skip
+        _method("full-paper-loss", "GS-MSDR (full), the paper's loss alone", "gsmsdr",
+                "full without the deconvolved residual loss (deconvolved_loss_weight 0)", deconvolved_loss_weight=0.0),
         _method("full-margin", "GS-MSDR (full), render margin", "gsmsdr",
                 "full rendering the kernel's half-width beyond every border of a blurred view (render_margin)",
                 render_margin=True),  # fmt: skip

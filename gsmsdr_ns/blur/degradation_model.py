@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from gsmsdr_ns.blur.deconvolved_loss import blend_with_identity, deconvolved_residual, mean_kernel
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.grid_kernels import GridKernels, as_dense
 from gsmsdr_ns.blur.kernels import kernel_centroids
@@ -84,6 +85,19 @@ def _lens_for(profile: DegradationProfile, config: BlurFieldConfig) -> bool:
     """Whether the thin lens blurs this image before the field: known defocus, or (when the config asks) a blur of
     unknown kind."""
     return profile.known_defocus or (profile.defocus and config.thin_lens_for_unknown_kind)
+
+
+def _mean_blend_kernel(kernels: Union[Tensor, GridKernels], mask: Tensor) -> Tensor:
+    """[B, K, K] detached mean over the image of the field's blend ``m * k + (1 - m) * identity`` (kernels
+    [B, K*K, H, W], expanded over the pixels in mode view, or on the field's coarse grid; mask [B, 1, H, W])."""
+    with torch.no_grad():
+        if isinstance(kernels, GridKernels):
+            weights = kernels.weights
+        elif kernels.stride(-1) == 0 and kernels.stride(-2) == 0:
+            weights = kernels[:, :, :1, :1]  # one kernel per image: no need to average H x W copies
+        else:
+            weights = kernels
+        return blend_with_identity(mean_kernel(weights.float()), mask.float().mean(dim=(1, 2, 3)))
 
 
 def _kernel_centroids(kernels: Union[Tensor, GridKernels]) -> Tensor:
@@ -244,11 +258,22 @@ class DegradationModel(nn.Module):
             groups["resolution_model"] = list(self.resolution_model.parameters())
         return groups
 
-    def get_loss_dict(self, loss_dict: Dict[str, Tensor], outputs: Dict[str, Any]) -> Dict[str, Tensor]:
-        """Add the blur field's regularisers when it ran: ``blur_mask_reg`` (``outputs["blur_mask"]``) and
-        ``blur_kernel_centre`` (``outputs["blur_kernel_centroids"]``)."""
-        if self.blur_field is not None:
-            self.blur_field.get_loss_dict(loss_dict, outputs.get("blur_mask"), outputs.get("blur_kernel_centroids"))
+    def get_loss_dict(
+        self, loss_dict: Dict[str, Tensor], outputs: Dict[str, Any], image: Optional[Tensor] = None
+    ) -> Dict[str, Tensor]:
+        """Add the blur field's terms when it ran: ``blur_mask_reg`` (``outputs["blur_mask"]``),
+        ``blur_kernel_centre`` (``outputs["blur_kernel_centroids"]``) and, given the training ``image`` [H, W, 3]
+        the degraded ``outputs["rgb"]`` is compared with, ``blur_deconvolved`` (``outputs["blur_kernel_mean"]``,
+        :mod:`gsmsdr_ns.blur.deconvolved_loss`)."""
+        if self.blur_field is None:
+            return loss_dict
+        self.blur_field.get_loss_dict(loss_dict, outputs.get("blur_mask"), outputs.get("blur_kernel_centroids"))
+        kernel = outputs.get("blur_kernel_mean")
+        if kernel is not None and image is not None:
+            config = self.blur_field.config
+            residual = _bchw(outputs["rgb"] - image)
+            weighted = deconvolved_residual(residual, kernel, config.deconvolved_loss_eps)
+            loss_dict["blur_deconvolved"] = config.deconvolved_loss_weight * weighted.square().mean()
         return loss_dict
 
     def get_metrics_dict(self, metrics_dict: Dict[str, Any], outputs: Dict[str, Any]) -> Dict[str, Any]:
@@ -356,6 +381,8 @@ class DegradationModel(nn.Module):
                 blurred = timed("kernels", BlurField.blur, image, stages.kernels, self.blur_field.config.linear_light)
                 image = stages.mask * blurred + (1.0 - stages.mask) * image  # BlurField.degrade
                 outputs["blur_mask"] = _hwc(crop_margin(stages.mask, plan.margin))
+                if self.blur_field.config.deconvolved_loss_weight > 0:
+                    outputs["blur_kernel_mean"] = _mean_blend_kernel(stages.kernels, stages.mask)
                 if self.blur_field.config.kernel_centre_weight > 0 and not self.profiles[plan.view_id].exact_pose:
                     outputs["blur_kernel_centroids"] = timed("blur_field", _kernel_centroids, stages.kernels)
         image = crop_margin(image, plan.margin)

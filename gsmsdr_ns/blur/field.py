@@ -161,6 +161,14 @@ class BlurFieldConfig:
     near the centre of its blur; a kernel free to shift lets the sharp scene drift off that pose by a different
     amount in every view). Images whose records give the exact mid-exposure pose of a simulated shake (generated
     and ``gsmsdr-degrade`` scenes) are not centred. 0: off."""
+    deconvolved_loss_weight: float = 10.0
+    """Weight of the deconvolved residual loss (``blur/deconvolved_loss.py``) on images the field blurs: the mean
+    squared residual weighted by the inverse of the image's mean kernel (loss ``blur_deconvolved``), so the detail the
+    blur attenuates reaches the Gaussians at about full strength instead of attenuated twice. 0: off (the paper's
+    loss alone)."""
+    deconvolved_loss_eps: float = 0.01
+    """Wiener regulariser of that weight: frequencies the blur keeps below sqrt(eps) are amplified at most
+    eps^-1/2 times (10x), so noise and frequencies the blur removed are not blown up."""
     camera_shake: bool = False
     """Images that may be motion-blurred (records name motion, or the kind of blur is unknown) are first blurred
     along a learnt camera rotation path (:class:`~gsmsdr_ns.blur.shake.CameraShake`, optimizer group
@@ -191,6 +199,10 @@ class BlurFieldConfig:
             raise ValueError("a blur field needs pixel_kernels, view_kernels or both")
         if not self.thin_lens_initial_aperture > 0:
             raise ValueError(f"thin_lens_initial_aperture must be > 0, got {self.thin_lens_initial_aperture}")
+        if not self.deconvolved_loss_weight >= 0:
+            raise ValueError(f"deconvolved_loss_weight must be >= 0, got {self.deconvolved_loss_weight}")
+        if not self.deconvolved_loss_eps > 0:
+            raise ValueError(f"deconvolved_loss_eps must be > 0, got {self.deconvolved_loss_eps}")
         if not self.kernel_centre_weight >= 0:
             raise ValueError(f"kernel_centre_weight must be >= 0, got {self.kernel_centre_weight}")
         if not self.kernel_prior_sigma > 0:

@@ -476,9 +476,20 @@ class GSMSDRModel(SplatfactoModel):
         """splatfacto's loss on ``rgb`` (the simulated degradation while training) plus the blur mask regulariser."""
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
         if self.training:
-            self.degradation.get_loss_dict(loss_dict, outputs)
+            self.degradation.get_loss_dict(loss_dict, outputs, self._training_target(outputs, batch))
             self._check_finite(loss_dict)
         return loss_dict
+
+    def _training_target(self, outputs, batch) -> Optional[Tensor]:
+        """[H, W, 3] the training image composited on the render's background, its masked pixels replaced by the
+        (detached) render so they add no residual, when the degradation model's loss needs it; else None."""
+        if "blur_kernel_mean" not in outputs:
+            return None
+        gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])[..., :3]
+        if "mask" in batch:
+            mask = self._downscale_if_required(batch["mask"]).to(self.device)
+            return gt * mask + outputs["rgb"].detach() * (1.0 - mask.float())
+        return gt
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, Tensor]:
         """splatfacto's metrics; ``blur_kernel_size`` (the HPKO kernel size) on steps where the blur field ran."""
