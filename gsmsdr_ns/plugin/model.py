@@ -124,14 +124,13 @@ def viewmats_from_camera_to_worlds(camera_to_worlds: Tensor) -> Tensor:
     """
     if camera_to_worlds.ndim != 3 or camera_to_worlds.shape[-2] not in (3, 4) or camera_to_worlds.shape[-1] != 4:
         raise ValueError(f"expected camera_to_worlds of shape [C, 3, 4], got {tuple(camera_to_worlds.shape)}")
-    flip_yz = camera_to_worlds.new_full((3,), -1.0)  # constants filled on the device: no host copy per call
-    flip_yz[0] = 1.0
-    rotation = camera_to_worlds[:, :3, :3] * flip_yz  # negate the y and z camera axes
+    # constants are built on the device without Python-scalar writes (each would be a host copy per call)
+    rotation = torch.cat([camera_to_worlds[:, :3, :1], -camera_to_worlds[:, :3, 1:3]], dim=2)  # negate camera y, z
     translation = camera_to_worlds[:, :3, 3:4]
     rotation_inv = rotation.transpose(1, 2)
     translation_inv = -rotation_inv @ translation
-    bottom = camera_to_worlds.new_zeros(camera_to_worlds.shape[0], 1, 4)
-    bottom[..., 3] = 1.0
+    eye = torch.eye(4, dtype=camera_to_worlds.dtype, device=camera_to_worlds.device)
+    bottom = eye[3:].expand(camera_to_worlds.shape[0], 1, 4)
     return torch.cat([torch.cat([rotation_inv, translation_inv], dim=2), bottom], dim=1)
 
 
