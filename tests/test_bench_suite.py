@@ -114,9 +114,9 @@ def test_user_scene_without_sharp_twin_skips_the_upper_bound(tmp_path: Path) -> 
 
 def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert set(METHODS) == {"plain", "plain-poses", "msd-only", "re-only", "full", "full-poses", "full-uncentred",
-                            "full-lens-unknown", "full-paper-loss", "full-margin", "full-shake", "full-true", "full-per-pixel", "-view",
-                            "view", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite", "sharp-degraded-poses",
-                            "sharp"}  # fmt: skip
+                            "full-lens-unknown", "full-paper-loss", "full-margin", "full-shake", "full-true",
+                            "full-per-pixel", "-view", "view", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite",
+                            "sharp-degraded-poses", "sharp"}  # fmt: skip
 
     def model(name: str):
         return METHODS[name].make_config(tmp_path, tmp_path / "out").pipeline.model
@@ -150,7 +150,8 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert model("full-margin").blur_field.render_margin and not model("full").blur_field.render_margin
     assert model("full-shake").blur_field.camera_shake and not model("full").blur_field.camera_shake
     assert not model("full").blur_field.thin_lens_for_unknown_kind
-    assert model("full-paper-loss").blur_field.deconvolved_loss_weight == 0 < model("full").blur_field.deconvolved_loss_weight
+    paper_loss, full = model("full-paper-loss").blur_field, model("full").blur_field
+    assert paper_loss.deconvolved_loss_weight == 0 < full.deconvolved_loss_weight
 
 
 def test_fingerprint_follows_the_resolved_preset(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
