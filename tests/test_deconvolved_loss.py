@@ -6,7 +6,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from gsmsdr_ns.blur.deconvolved_loss import deconvolved_residual, mean_kernel
+from gsmsdr_ns.blur.deconvolved_loss import deconvolved_residual, fast_fft_length, mean_kernel
 
 
 def gaussian_kernel(K: int, sigma: float) -> torch.Tensor:
@@ -71,3 +71,18 @@ def test_bad_arguments_are_refused(bad):
     args.update(bad)
     with pytest.raises(ValueError):
         deconvolved_residual(**args)
+
+
+def _factors_2_3_5(n: int) -> bool:
+    for p in (2, 3, 5):
+        while n % p == 0:
+            n //= p
+    return n == 1
+
+
+def test_fast_fft_length_is_the_next_2_3_5_smooth_length():
+    for n in range(1, 1200):
+        length = fast_fft_length(n)
+        assert length >= n and _factors_2_3_5(length), n
+        assert not any(_factors_2_3_5(m) for m in range(n, length)), n
+    assert fast_fft_length(263) == 270  # 263 is prime: the size a 229-px row padded by 17 on each side has

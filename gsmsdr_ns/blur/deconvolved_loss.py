@@ -41,6 +41,25 @@ def blend_with_identity(kernel: Tensor, mask: Tensor) -> Tensor:
     return out
 
 
+def fast_fft_length(n: int) -> int:
+    """The smallest length >= n whose only prime factors are 2, 3 and 5 (an FFT of a length with a large prime
+    factor, e.g. 263, runs many times slower)."""
+    best = 1
+    while best < n:
+        best *= 2
+    power5 = 1
+    while power5 < 2 * n:
+        power35 = power5
+        while power35 < 2 * n:
+            length = power35
+            while length < n:
+                length *= 2
+            best = min(best, length)
+            power35 *= 3
+        power5 *= 5
+    return best
+
+
 def deconvolved_residual(residual: Tensor, kernel: Tensor, eps: float) -> Tensor:
     """The residual weighted by the inverse of ``kernel``'s spectrum (module docstring).
 
@@ -49,8 +68,8 @@ def deconvolved_residual(residual: Tensor, kernel: Tensor, eps: float) -> Tensor
         kernel: [B, K, K] the blur (centre tap at index K // 2), summing to 1; treated as a constant.
         eps: > 0; the weight is at most ``eps ** -0.5`` (at frequencies the blur removes).
     Returns:
-        [B, C, H, W]: the residual convolved with the weight's impulse response (zero-padded by K, no wrap-around
-        inside the image).
+        [B, C, H, W]: the residual convolved with the weight's impulse response (zero-padded by at least K on
+        every side to a fast FFT size: no wrap-around inside the image).
     """
     if residual.dim() != 4 or kernel.dim() != 3 or kernel.shape[0] != residual.shape[0]:
         raise ValueError(f"expected residual [B, C, H, W] and kernel [B, K, K], got {list(residual.shape)}, "
@@ -59,8 +78,8 @@ def deconvolved_residual(residual: Tensor, kernel: Tensor, eps: float) -> Tensor
         raise ValueError(f"eps must be > 0, got {eps}")
     K = kernel.shape[-1]
     H, W = residual.shape[-2:]
-    size = (H + 2 * K, W + 2 * K)
-    padded = F.pad(residual, (K, K, K, K))
+    size = (fast_fft_length(H + 2 * K), fast_fft_length(W + 2 * K))
+    padded = F.pad(residual, (K, size[1] - W - K, K, size[0] - H - K))
     taps = torch.zeros(kernel.shape[0], *size, dtype=residual.dtype, device=residual.device)
     taps[:, :K, :K] = kernel.detach().to(residual.dtype)
     taps = torch.roll(taps, shifts=(-(K // 2), -(K // 2)), dims=(-2, -1))  # the kernel's centre at the origin

@@ -66,15 +66,31 @@ inline Stencil stencil(int64_t o, int64_t r, int64_t n) {
     return Stencil{lo, hi, src - static_cast<double>(lo)};
 }
 
+// The column stencils of a row, and their adjoint as runs: lo and hi are non-decreasing in x, so the columns that
+// read grid column gx as lo (as hi) form one run [lo_begin[gx], lo_end[gx]) ([hi_begin[gx], hi_end[gx])).
 template <typename S> struct Columns {
-    std::vector<int64_t> lo, hi;
-    std::vector<S> t;
-    explicit Columns(const Dims &s) : lo(s.W), hi(s.W), t(s.W) {
+    std::vector<int64_t> lo, hi, lo_begin, lo_end, hi_begin, hi_end;
+    std::vector<S> t, one_minus_t;
+    explicit Columns(const Dims &s)
+        : lo(s.W), hi(s.W), lo_begin(s.w, 0), lo_end(s.w, 0), hi_begin(s.w, 0), hi_end(s.w, 0), t(s.W),
+          one_minus_t(s.W) {
         for (int64_t x = 0; x < s.W; ++x) {
             const Stencil st = stencil(x, s.r, s.w);
             lo[x] = st.lo;
             hi[x] = st.hi;
             t[x] = static_cast<S>(st.t);
+            one_minus_t[x] = S(1) - t[x];
+        }
+        runs(lo, lo_begin, lo_end);
+        runs(hi, hi_begin, hi_end);
+    }
+
+  private:
+    static void runs(const std::vector<int64_t> &cell, std::vector<int64_t> &begin, std::vector<int64_t> &end) {
+        const int64_t W = static_cast<int64_t>(cell.size());
+        for (int64_t x = 0; x < W; ++x) {
+            if (x == 0 || cell[x] != cell[x - 1]) begin[cell[x]] = x;
+            end[cell[x]] = x + 1;
         }
     }
 };
@@ -158,7 +174,6 @@ void grad_columns_rows(const S *img, const S *g, S *colsum, const Dims &s, int64
         const S *img_b = img + b * s.C * s.HW;
         const S *g_row = g + b * s.C * s.HW + y * s.W;
         S *out = colsum + row * s.K * s.K * s.w;
-        std::fill(out, out + s.K * s.K * s.w, S(0));
         for (int64_t i = 0; i < s.K; ++i) {
             const int64_t ys = clamp_row(y + i - s.p, s.H);
             for (int64_t j = 0; j < s.K; ++j) {
@@ -168,10 +183,14 @@ void grad_columns_rows(const S *img, const S *g, S *colsum, const Dims &s, int64
                 std::fill(prod.begin(), prod.end(), S(0));
                 for (int64_t c = 0; c < s.C; ++c)
                     shifted_fma(prod.data(), g_row + c * s.HW, img_b + c * s.HW + ys * s.W, s.W, d, lo, hi);
+                // the column interpolation's adjoint, one grid column at a time (runs, not a scatter: no store
+                // waits for the previous one)
                 S *dst = out + (i * s.K + j) * s.w;
-                for (int64_t x = 0; x < s.W; ++x) {
-                    dst[cols.lo[x]] += (S(1) - cols.t[x]) * prod[x];
-                    dst[cols.hi[x]] += cols.t[x] * prod[x];
+                for (int64_t gx = 0; gx < s.w; ++gx) {
+                    S acc = 0;
+                    for (int64_t x = cols.lo_begin[gx]; x < cols.lo_end[gx]; ++x) acc += cols.one_minus_t[x] * prod[x];
+                    for (int64_t x = cols.hi_begin[gx]; x < cols.hi_end[gx]; ++x) acc += cols.t[x] * prod[x];
+                    dst[gx] = acc;
                 }
             }
         }
