@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 import os
 from pathlib import Path
 
@@ -183,11 +184,12 @@ def test_images_folder_is_printed_not_written(capture, tmp_path, capsys):
     entries = parse(["--images", str(scene / "images")]).main()
     assert entries["view_20.png"]["estimate"]["label"] == "motion"
     assert sorted(p.name for p in scene.iterdir()) == ["images"]
-    # each row shows the evidence of both kind rules: the orientation spread and the detail isotropy
+    # each row shows the evidence of the kind rules: orientation spread, detail isotropy, directional loss
     row = next(line for line in capsys.readouterr().out.splitlines() if "view_21" in line)
     evidence = entries["view_21.png"]["estimate"]
     cells = [c.strip() for c in row.split("│")]
-    assert f"{evidence['anisotropy']:.2f}" in cells and f"{evidence['isotropy']:.2f}" in cells
+    for key in ("anisotropy", "isotropy", "directional_loss"):
+        assert f"{evidence[key]:.2f}" in cells
 
 
 def test_scene_records_are_cached_until_an_image_changes(capture, tmp_path):
@@ -207,28 +209,40 @@ def test_scene_records_are_cached_until_an_image_changes(capture, tmp_path):
     assert not (scene / "degradation.json").exists()  # the cache never touches the scene's records
 
 
-def test_views_of_different_content_leave_the_kind_of_blur_unknown():
+SET_RULES_ONLY = EstimateConfig(motion_direction=math.inf, defocus_direction=-math.inf)
+"""The estimate without the rules that read a blurred image alone (directional loss, region in focus)."""
+
+
+def test_views_of_different_content_get_their_kind_of_blur_from_the_image_alone():
     # Crops far apart show different things: the sharp views disagree about edge orientations as much as a blur
-    # would, so the blurred views are recorded as blurred by both kinds (the model simulates both).
+    # would, so the rules that compare a view with the sharp ones leave the kind unknown (the model would simulate
+    # both). The blurred view's own directional loss of detail still names it: a shake takes detail along one
+    # direction in every region, a disk alike in all.
     photo = skimage.data.astronaut()
     offsets = [(0, 0), (40, 60), (80, 120), (120, 200), (200, 40), (260, 180), (300, 256), (160, 100)]
     views = [photo[y : y + 192, x : x + 256].copy() for y, x in offsets]
-    estimates = estimate_degradations(views + [motion_blur(views[1]), defocus(views[2])])
-    for est in estimates[-2:]:
-        assert est.label == "unknown" and est.blurred is True and est.mixres_factor == 1
+    images = views + [motion_blur(views[1]), defocus(views[2])]
+    estimates = estimate_degradations(images)
+    assert [e.label for e in estimates[-2:]] == ["motion", "defocus"]
+    assert estimates[-2].directional_loss > 2 * max(e.directional_loss for e in estimates[:-2] + estimates[-1:])
+    assert all(e.blurred is True and e.mixres_factor == 1 for e in estimates[-2:])
+    assert all(e.label in ("sharp", "unknown") and e.blurred is not True for e in estimates[:-2])
+    for est in estimate_degradations(images, SET_RULES_ONLY)[-2:]:
+        assert est.label == "unknown" and est.blurred is True
         entry = entry_from_estimate(est)
         assert entry["degraded"] is True and set(entry["effects"]) == {"motion", "defocus"}
-    assert all(e.label in ("sharp", "unknown") and e.blurred is not True for e in estimates[:-2])
 
 
-def test_a_set_with_one_sharp_view_leaves_the_kind_of_blur_unknown():
+def test_a_set_with_one_sharp_view_names_a_kind_of_blur_only_from_the_image_alone():
     # With one sharp view, how much content alone spreads the edge orientations is not measured (it is not zero):
-    # the blurred views are recorded as blurred by both kinds, never as a guessed kind.
+    # the set rules never guess a kind, only each blurred view's own directional loss names one.
     views = sharp_views()
     blurred = [motion_blur(v) for v in views[1:5]] + [defocus(v) for v in views[5:]]
     estimates = estimate_degradations([views[0]] + blurred)
     assert estimates[0].label == "sharp"
-    assert all(e.label == "unknown" and e.blurred is True for e in estimates[1:])
+    assert [e.label for e in estimates[1:]] == ["motion"] * 4 + ["defocus"] * 3
+    alone = estimate_degradations([views[0]] + blurred, SET_RULES_ONLY)
+    assert all(e.label == "unknown" and e.blurred is True for e in alone[1:])
 
 
 def test_edge_width_is_the_blur_width_of_step_edges():
@@ -264,7 +278,9 @@ def test_the_spread_of_edge_widths_must_agree_with_the_kind_of_blur(capture):
     assert estimates[defocused].width_spread < EstimateConfig().max_defocus_width_spread
     assert estimates[defocused].width_spread < estimates[motion].width_spread
     assert estimates[motion].width_spread <= EstimateConfig().max_motion_width_spread
-    strict = estimate_degradations(images, EstimateConfig(max_defocus_width_spread=0.5, max_motion_width_spread=0.5))
+    strict = estimate_degradations(
+        images, replace(SET_RULES_ONLY, max_defocus_width_spread=0.5, max_motion_width_spread=0.5)
+    )
     for i in (motion, defocused):
         assert strict[i].label == "unknown" and strict[i].blurred is True  # blurred, kind left unknown
 
@@ -336,7 +352,7 @@ def test_small_real_photos_get_their_kind_of_blur_from_the_detail_tensor():
     assert all(e.blurred is True for e in estimates[10:])
     assert max(e.isotropy for e in estimates[10:15]) < min(e.isotropy for e in estimates[15:])
     # without the second opinion (a spread no set meets) the kinds stay unknown, the photos still blurred
-    alone = estimate_degradations(images, EstimateConfig(max_detail_spread=-1.0))
+    alone = estimate_degradations(images, replace(SET_RULES_ONLY, max_detail_spread=-1.0))
     assert all(e.label == "unknown" and e.blurred is True for e in alone[10:])
 
 
@@ -353,3 +369,50 @@ def test_the_detail_tensor_shrinks_across_a_motion_and_alike_under_defocus():
     blurred = whiten @ detail_tensor(to_gray(defocus_by(photo, 3.0))) @ whiten
     assert 0.9 < blurred[0, 0] / blurred[1, 1] < 1.1
     assert np.isnan(detail_tensor(to_gray(np.full((64, 64, 3), 90, np.uint8)))).all()  # flat: undefined
+
+
+def _blur_part(rgb: np.ndarray, radius: float, share: float = 2 / 3) -> np.ndarray:
+    """rgb with its left `share` blurred by a disk (a lens focused on what the right part shows)."""
+    out = rgb.copy()
+    cut = int(rgb.shape[1] * share)
+    out[:, :cut] = defocus_by(rgb, radius)[:, :cut]
+    return out
+
+
+def test_a_shake_takes_detail_along_one_direction_in_every_region():
+    from gsmsdr_ns.estimate.features import spectral_anisotropy, tile_detail_coherence
+
+    photo = sharp_views()[0]
+    along_x = motion_blur(photo)
+    along_y = np.ascontiguousarray(motion_blur(photo.transpose(1, 0, 2)).transpose(1, 0, 2))
+    measures = (tile_detail_coherence, spectral_anisotropy)
+    for measure in measures:
+        sharp, disk = measure(to_gray(photo)), measure(to_gray(defocus(photo)))
+        x, y = measure(to_gray(along_x)), measure(to_gray(along_y))
+        assert min(x, y) > 2 * max(sharp, disk)
+        assert abs(x - y) < 0.35 * max(x, y)  # the direction of the shake does not matter, only that it has one
+    assert math.isnan(tile_detail_coherence(to_gray(np.full((64, 64, 3), 90, np.uint8))))  # flat: undefined
+
+
+def test_the_sharpest_region_of_a_view_focused_on_one_depth_stays_sharp():
+    from gsmsdr_ns.estimate.features import sharpest_region_width, step_edges
+
+    photo = sharp_views()[0]
+
+    def region(rgb):
+        gray = to_gray(rgb)
+        return sharpest_region_width(*step_edges(gray), tuple(gray.shape))
+
+    sharp, part, whole = region(photo), region(_blur_part(photo, 3.0)), region(defocus_by(photo, 3.0))
+    assert part < 1.15 * sharp and whole > 1.5 * sharp
+    assert edge_width(to_gray(_blur_part(photo, 3.0)))[1] > 1.3 * edge_width(to_gray(photo))[1]  # yet soft edges
+    assert math.isnan(region(np.full((64, 64, 3), 90, np.uint8)))
+
+
+def test_a_view_blurred_in_part_only_is_named_defocus():
+    # A shake blurs every region of the view; a lens focused on one depth leaves one region sharp.
+    views = sharp_views()
+    images = views[:6] + [_blur_part(v, 3.0) for v in views[6:]]
+    estimates = estimate_degradations(images)
+    assert [e.label for e in estimates[6:]] == ["defocus", "defocus"]
+    assert all(e.label == "sharp" for e in estimates[:6])

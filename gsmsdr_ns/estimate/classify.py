@@ -24,6 +24,13 @@ image is compared with them.
   comparing orientations bin by bin (on small photos, sharp views of one scene disagree bin by bin), but it is
   trusted only when the set's other sharp images match the references' tensor closely (views of one scene), and
   the edge widths must agree with the kind as above.
+* **motion / defocus, from the image alone**: before those rules, a blurred image whose sharpest region has step
+  edges as narrow as the sharp images' is defocused (a lens focused on one depth; a shake blurs every region),
+  unless its detail loss is directional. After them, where the kind is still unknown, the image's own
+  directional loss decides (:attr:`DegradationEstimate.directional_loss`: how consistently its regions lost detail
+  along one orientation, and how anisotropic its spectrum's fall-off is): above ``motion_direction`` motion,
+  below ``defocus_direction`` defocus. It needs no other image, so it also names the kind in sets whose views show
+  different content, and in images between sharp and blurred when it says motion.
 """
 
 from __future__ import annotations
@@ -38,9 +45,10 @@ from torch import Tensor
 from .features import MIXRES_GROUPS, ImageFeatures, image_features, inverse_sqrt
 
 LABELS = ("sharp", "motion", "defocus", "mixres", "unknown")
-METHOD_VERSION = 2
+METHOD_VERSION = 3
 """Raised whenever the same images and config get other labels (cached estimates and benchmark runs that trained
-on them are then computed again). 2: the detail-tensor second opinion on the kind of blur."""
+on them are then computed again). 2: the detail-tensor second opinion on the kind of blur. 3: the kind of blur
+from the image alone (region in focus, directional loss)."""
 
 
 @dataclass
@@ -91,6 +99,17 @@ class EstimateConfig:
     (when the orientation rule leaves the kind unknown) ..."""
     defocus_isotropy: float = 0.87
     """... and above this, defocused; in between the kind stays unknown."""
+    motion_direction: float = 0.4
+    """Where both rules above leave the kind unknown, a blurred image whose directional loss (see
+    `DegradationEstimate.directional_loss`, measured on the image alone) is above this is motion-blurred ..."""
+    defocus_direction: float = 0.2
+    """... and below this, defocused; in between the kind stays unknown."""
+    focused_region_width: float = 1.15
+    """A blurred image whose sharpest region's step edges are at most this many times as wide as the set's
+    narrowest-edged images' is defocused (a lens focused on one depth) unless its loss of detail is directional."""
+    kind_in_between: bool = True
+    """An image neither sharp nor clearly blurred (sharpness between the two thresholds) whose directional loss names
+    motion is motion-blurred (else unknown): it pays for that model alone instead of both."""
     max_size: int = 1024
     """Blur is judged on a copy whose longer side is at most this many px (0: full resolution)."""
     coarse_sigma: float = 2.0
@@ -131,6 +150,14 @@ class DegradationEstimate:
     """How alike the orientations lost their fine detail: log of the detail tensor's larger eigenvalue over log of
     its smaller, relative to the reference images' tensor (defocus: near 1; motion: lower); None for an image that
     lost none or a flat image."""
+
+    sharpest_region: Optional[float] = None
+    """Median step-edge width of the image's sharpest region relative to the set's narrowest-edged images (near 1:
+    part of the view is in focus); None with too few step edges."""
+    directional_loss: Optional[float] = None
+    """How much more fine detail the image lost along one orientation than along the others, from the image alone:
+    the geometric mean of its tiles' coherence of detail loss and of its spectrum's anisotropy of fall-off (camera
+    shake: large; defocus and sharp views: small); None for a flat image."""
 
     def evidence(self) -> dict:
         """The numbers as a JSON-ready dict (rounded)."""
@@ -182,8 +209,11 @@ def _content_anisotropy(by_angle: np.ndarray, sharp_idx: list[int]) -> float:
     return float(np.median(spreads))
 
 
-def _width_evidence(feats: Sequence[ImageFeatures], cfg: EstimateConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Step-edge widths against the set's narrowest-edged images -> (soft width [n], width spread [n]); NaN unknown.
+def _width_evidence(
+    feats: Sequence[ImageFeatures], cfg: EstimateConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step-edge widths against the set's narrowest-edged images -> (soft width [n], width spread [n], sharpest
+    region [n]); NaN unknown.
 
     soft width: the image's 90th-percentile width over the references'. width spread: the image's 90th
     percentile over its median, over the same ratio of the references. A blur of the whole view widens every edge
@@ -196,11 +226,12 @@ def _width_evidence(feats: Sequence[ImageFeatures], cfg: EstimateConfig) -> tupl
     soft = np.array([f.soft_edge_width for f in feats])
     known = np.isfinite(median) & np.isfinite(soft)
     if known.sum() < cfg.min_set_size:
-        return np.full(len(feats), np.nan), np.full(len(feats), np.nan)
+        return np.full(len(feats), np.nan), np.full(len(feats), np.nan), np.full(len(feats), np.nan)
     ref = np.argsort(np.where(known, median, np.inf), kind="stable")[: _reference_count(int(known.sum()), cfg)]
     soft_width = soft / max(float(np.median(soft[ref])), 1e-6)
     spread = (soft / median) / max(float(np.median(soft[ref] / median[ref])), 1e-6)
-    return np.where(known, soft_width, np.nan), np.where(known, spread, np.nan)
+    region = np.array([f.sharpest_region_width for f in feats]) / max(float(np.median(median[ref])), 1e-6)
+    return np.where(known, soft_width, np.nan), np.where(known, spread, np.nan), region
 
 
 def _detail_evidence(
@@ -242,6 +273,25 @@ def _kind_from_isotropy(isotropy: float, width_spread: float, cfg: EstimateConfi
     if limit is not None and width_spread > limit:
         return "unknown"
     return label
+
+
+def _directional_loss(feat: ImageFeatures) -> float:
+    """Geometric mean of the tile coherence and the spectral anisotropy of one image (NaN when either is)."""
+    return math.sqrt(max(feat.tile_coherence, 0.0) * max(feat.spectral_anisotropy, 0.0))
+
+
+def _kind_from_direction(directional: float, region: float, cfg: EstimateConfig) -> str:
+    """motion, defocus or unknown from the directional loss and the sharpest region's edge width (relative to the
+    set's narrowest-edged images; NaN: no evidence). The edge-width spread is not asked here: a lens focused on one
+    depth widens it as a shake does."""
+    in_focus = region <= cfg.focused_region_width  # part of the view as sharp as a sharp view: a lens
+    if in_focus and not directional > cfg.motion_direction:
+        return "defocus"
+    if directional > cfg.motion_direction and not in_focus:
+        return "motion"
+    if directional < cfg.defocus_direction:
+        return "defocus"
+    return "unknown"  # NaN included
 
 
 def _grid_factor(feats: Sequence[ImageFeatures], ref: np.ndarray, cfg: EstimateConfig) -> list[tuple[int, float]]:
@@ -286,7 +336,7 @@ def estimate_from_features(
     sharp = np.array([_combined(e, v) for e, v in zip(edge_rel, lap_rel)])
     ref_sharp = _reference(sharp, ref)
     sharp = sharp / max(ref_sharp, 1e-12)
-    soft_width, width_spread = _width_evidence(feats, cfg)
+    soft_width, width_spread, region_width = _width_evidence(feats, cfg)
     with np.errstate(invalid="ignore"):
         soft = soft_width > cfg.soft_width_ratio  # NaN: no evidence either way
     by_angle = np.stack([f.edge_ratio_by_angle for f in feats])  # [n, bins]
@@ -299,7 +349,31 @@ def estimate_from_features(
     noise = _content_anisotropy(by_angle, sharp_idx)
     direction_ok = noise < cfg.max_content_anisotropy
     isotropy, detail_spread = _detail_evidence(feats, ref, sharp_idx)
+    directional = np.array([_directional_loss(f) for f in feats])
     detail_ok = detail_spread <= cfg.max_detail_spread
+    def kind_of(i: int) -> tuple[str, float]:
+        """(motion / defocus / unknown, confidence of the kind) of blurred image i, the rules in turn."""
+        # a region as sharp as the sharp views' in a blurred view: a lens focused on one depth, whatever else the
+        # orientations say (they then show where the blur is, not a direction)
+        region = region_width[i] if len(sharp_idx) >= 2 else math.nan
+        if region <= cfg.focused_region_width and not directional[i] > cfg.motion_direction:
+            return "defocus", _confidence(region, cfg.focused_region_width, 1.5)
+        if direction_ok:
+            label = "motion" if aniso[i] >= cfg.anisotropy_threshold else "defocus"
+            limit = cfg.max_motion_width_spread if label == "motion" else cfg.max_defocus_width_spread
+            if not width_spread[i] > limit:  # the edge widths must not contradict that kind (NaN: no evidence)
+                return label, _confidence(aniso[i] + 1e-3, cfg.anisotropy_threshold, 2.0)
+        if detail_ok:
+            label = _kind_from_isotropy(isotropy[i], width_spread[i], cfg)
+            if label != "unknown":
+                threshold = cfg.motion_isotropy if label == "motion" else cfg.defocus_isotropy
+                return label, _confidence(isotropy[i], threshold, 1.25)
+        label = _kind_from_direction(directional[i], region, cfg)
+        if label != "unknown":
+            threshold = cfg.motion_direction if label == "motion" else cfg.defocus_direction
+            return label, _confidence(directional[i], threshold, 2.0)
+        return "unknown", 0.0
+
     out = []
     for i in range(n):
         factor, gscore = grid[i]
@@ -314,23 +388,17 @@ def estimate_from_features(
             label, blurred = ("sharp", False) if trusted else ("unknown", None)
             conf = _confidence(sharp[i], cfg.sharp_threshold, 2.0) if trusted else 0.0
         elif sharp[i] >= cfg.blurred_threshold:
+            # neither sharp nor clearly blurred: the kind of blur may still show (and saves simulating both)
             label, blurred, conf = "unknown", None, 0.0
+            if cfg.kind_in_between and directional[i] > cfg.motion_direction:
+                # only a directional loss of detail: a region in focus or a low directional loss is what a sharp
+                # view of soft content shows as well
+                label = "motion"
+                conf = min(_confidence(directional[i], cfg.motion_direction, 2.0), _confidence(sharp[i], cfg.sharp_threshold, 2.0))
         else:
             blurred = True
-            conf_blur = _confidence(sharp[i], cfg.blurred_threshold, 2.0)
-            if direction_ok:
-                label = "motion" if aniso[i] >= cfg.anisotropy_threshold else "defocus"
-                limit = cfg.max_motion_width_spread if label == "motion" else cfg.max_defocus_width_spread
-                if width_spread[i] > limit:  # the edge widths contradict that kind (NaN: no evidence)
-                    label = "unknown"
-                conf = min(conf_blur, _confidence(aniso[i] + 1e-3, cfg.anisotropy_threshold, 2.0))
-            else:
-                label, conf = "unknown", 0.0
-            if label == "unknown" and detail_ok:
-                label = _kind_from_isotropy(isotropy[i], width_spread[i], cfg)
-                if label != "unknown":
-                    threshold = cfg.motion_isotropy if label == "motion" else cfg.defocus_isotropy
-                    conf = min(conf_blur, _confidence(isotropy[i], threshold, 1.25))
+            label, conf_kind = kind_of(i)
+            conf = min(_confidence(sharp[i], cfg.blurred_threshold, 2.0), conf_kind)
         out.append(
             DegradationEstimate(
                 label=label,
@@ -346,6 +414,8 @@ def estimate_from_features(
                 soft_width=None if math.isnan(soft_width[i]) else float(soft_width[i]),
                 width_spread=None if math.isnan(width_spread[i]) else float(width_spread[i]),
                 isotropy=None if math.isnan(isotropy[i]) else float(isotropy[i]),
+                sharpest_region=None if math.isnan(region_width[i]) else float(region_width[i]),
+                directional_loss=None if math.isnan(directional[i]) else float(directional[i]),
             )
         )
     return out

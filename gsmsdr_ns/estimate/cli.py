@@ -16,7 +16,7 @@ from typing import Any, Dict, Optional
 
 import tyro
 from rich.console import Console
-from rich.table import Table
+from rich.table import Column, Table
 
 from .._cli import run_entrypoint
 from .classify import EstimateConfig
@@ -71,13 +71,20 @@ class EstimateCLI:
 
     @staticmethod
     def _print(entries: Dict[str, Dict[str, Any]]) -> None:
-        table = Table("image", "label", "confidence", "sharpness", "anisotropy", "isotropy", "mixres factor")
+        width = max((len(n) for n in entries), default=5)
+        table = Table(Column("image", no_wrap=True, min_width=width), Column("label", no_wrap=True, min_width=7),
+                      "confi- dence", "sharp- ness", "aniso- tropy", "iso- tropy", "direc- tional", "sharpest region",
+                      "mixres factor")  # fmt: skip
+
+        def number(value: Any) -> str:
+            return "-" if value is None else f"{value:.2f}"
+
         for name, entry in entries.items():
             ev = entry["estimate"]
-            factor, isotropy = ev["mixres_factor"], ev["isotropy"]
+            factor = ev["mixres_factor"]
             table.add_row(name, ev["label"], f"{ev['confidence']:.2f}", f"{ev['sharpness']:.2f}",
-                          f"{ev['anisotropy']:.2f}", "-" if isotropy is None else f"{isotropy:.2f}",
-                          "?" if factor is None else str(factor))  # fmt: skip
+                          f"{ev['anisotropy']:.2f}", number(ev.get("isotropy")), number(ev.get("directional_loss")),
+                          number(ev.get("sharpest_region")), "?" if factor is None else str(factor))  # fmt: skip
         CONSOLE.print(table)
 
 

@@ -42,9 +42,17 @@ class ImageFeatures:
     soft_edge_width: float
     """The same at the 90th percentile (the image's softest step edges): a blur of part of the view (a lens
     focused on one depth) widens these while the sharpest edges stay sharp."""
+    sharpest_region_width: float
+    """Median step-edge width of the image's sharpest region (:func:`sharpest_region_width`): about a sharp
+    view's edge width when part of the view is in focus; NaN with too few step edges."""
     detail_tensor: np.ndarray
     """[2, 2] the fine-scale gradient structure tensor whitened by the coarse-scale one (:func:`detail_tensor`):
     how much fine detail each orientation holds for its coarse structure; NaN for a flat image."""
+    tile_coherence: float
+    """How consistently the image's tiles lost fine detail along one orientation (:func:`tile_detail_coherence`):
+    large under camera shake, small for defocus and for sharp views whatever their content; NaN: too flat."""
+    spectral_anisotropy: float
+    """Largest cos(2 theta) amplitude of the spectrum's fall-off over orientations (:func:`spectral_anisotropy`)."""
     grid_scores: dict[int, float]
     """Per factor f in 2..4: periodicity of the grey image's second (third) differences at the knot spacing of an
     upsampling from 1/f of the size (:func:`grid_scores`); about 1 for images that were not upsampled."""
@@ -161,26 +169,95 @@ def _detail_tensor(grads: Tensor) -> np.ndarray:
     return whiten @ _structure_tensor(grads[0]) @ whiten
 
 
-def edge_width(
-    gray: Tensor, reach: int = 6, top_fraction: float = 0.05, min_edges: int = 16, sigma: float = 1.0
-) -> tuple[float, float]:
-    """Width in px of the isolated step edges of gray [H, W]: -> (median, 90th percentile) over those edges.
+def tile_detail_coherence(gray: Tensor, sigma: float = 2.0, tiles: int = 4) -> float:
+    """How consistently the tiles of gray [H, W] lost fine detail along one orientation (no reference needed).
+
+    Per tile of a ``tiles`` x ``tiles`` grid, the detail tensor (:func:`detail_tensor` of the tile) gives a
+    double-angle vector: length log(larger / smaller eigenvalue), angle twice the orientation that kept the least
+    detail. Content orients each tile's detail its own way, so those vectors point anywhere and mostly cancel; a
+    camera shake takes detail from every tile along (nearly) the same direction. -> |mean vector| over the tiles
+    with structure (0: none aligned; NaN: fewer than 4 such tiles).
+    """
+    return _tile_detail_coherence(scale_gradients(gray, sigma), tiles)
+
+
+def _tile_detail_coherence(grads: Tensor, tiles: int = 4) -> float:
+    """:func:`tile_detail_coherence` from ``grads`` [2, 2, h, w] of :func:`scale_gradients`."""
+    h, w = grads.shape[-2:]
+    tensors = []
+    for i in range(tiles):
+        for j in range(tiles):
+            cell = grads[..., i * h // tiles : (i + 1) * h // tiles, j * w // tiles : (j + 1) * w // tiles]
+            tensors.append((_structure_tensor(cell[0]), _structure_tensor(cell[1])))
+    strength = np.array([np.trace(c) for _, c in tensors])
+    vectors = []
+    for (fine, coarse), s in zip(tensors, strength):
+        whiten = inverse_sqrt(coarse)
+        if whiten is None or s < 1e-3 * strength.max():  # a flat tile says nothing about direction
+            continue
+        values, vecs = np.linalg.eigh(whiten @ fine @ whiten)
+        if values[0] <= 0:
+            continue
+        angle = math.atan2(vecs[1, 0], vecs[0, 0])  # the orientation that kept the least detail
+        vectors.append(math.log(values[1] / values[0]) * complex(math.cos(2 * angle), math.sin(2 * angle)))
+    return abs(sum(vectors) / len(vectors)) if len(vectors) >= 4 else float("nan")
+
+
+SPECTRUM_BANDS = ((0.04, 0.1), (0.1, 0.2), (0.2, 0.3), (0.3, 0.45))
+"""Radial frequency bands (cycles per px) of :func:`spectral_anisotropy`: the first is the reference, the others
+are where a blur of a few px takes its share."""
+
+
+def spectral_anisotropy(gray: Tensor, bins: int = 12) -> float:
+    """How much more the image's fine detail fell off along one orientation than along the others. gray: [H, W].
+
+    The power spectrum of the windowed image (Hann), averaged per orientation bin over [0, pi) and per radial band
+    (:data:`SPECTRUM_BANDS`): the log power of each higher band over the lowest one is the image's fall-off per
+    orientation, which view content sets alike for every band (edges fall off as 1/f^2 whatever their
+    orientation) while a blur steepens it where it acts. -> the largest, over the higher bands, amplitude of the
+    fall-off's cos(2 theta) component (0 for a blur of every orientation alike).
+    """
+    x = gray.to(torch.float64)
+    H, W = x.shape
+    hann = [torch.hann_window(n, periodic=False, dtype=x.dtype) for n in (H, W)]
+    window = torch.outer(hann[0], hann[1])
+    power = torch.fft.rfft2((x - x.mean()) * window).abs().square()  # [H, W // 2 + 1]
+    fy = torch.fft.fftfreq(H, dtype=x.dtype)[:, None]
+    fx = torch.fft.rfftfreq(W, dtype=x.dtype)[None, :]
+    radius = torch.hypot(fx, fy)
+    angle = torch.atan2(fy, fx).remainder(math.pi)
+    which = torch.clamp((angle / math.pi * bins).long(), max=bins - 1)
+    logs = []
+    for lo, hi in SPECTRUM_BANDS:
+        band = (radius >= lo) & (radius < hi)
+        total = torch.bincount(which[band], power[band], minlength=bins)
+        count = torch.bincount(which[band], minlength=bins).clamp(min=1)
+        logs.append(torch.log(total / count + 1e-20).numpy())
+    theta = (np.arange(bins) + 0.5) * math.pi / bins
+    fit = np.linalg.pinv(np.stack([np.ones(bins), np.cos(2 * theta), np.sin(2 * theta)], 1))  # [3, bins]
+    return float(max(math.hypot(*(fit @ (band - logs[0]))[1:]) for band in logs[1:]))
+
+
+def step_edges(
+    gray: Tensor, reach: int = 6, top_fraction: float = 0.05, sigma: float = 1.0
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The isolated step edges of gray [H, W] and their widths in px -> (x [m], y [m], width [m]).
 
     At the pixels with the strongest gradients (found, with their normal, on the image smoothed by `sigma` px;
     the top `top_fraction`), the profile across the edge is sampled every px over +-`reach` px. A profile counts
     as a step when it rises by at least 0.8 of its total variation and is flat at both ends (lines, textures and
     edges with a neighbour within `reach` do not). Its width is the rise over the steepest 1 px slope: about 1.5
     for a sharp step, the width of the blur's line spread function when blurred (edges blurred much wider than
-    `reach` px are not flat at the ends and do not count). NaN, NaN with fewer than `min_edges` steps.
+    `reach` px are not flat at the ends and do not count).
     """
     x = gray.to(torch.float32)
     H, W = x.shape
     margin = reach + 1  # every profile stays inside the image
     if H <= 2 * margin or W <= 2 * margin:
-        return float("nan"), float("nan")
+        return torch.zeros(0), torch.zeros(0), torch.zeros(0)
     g = sobel_gradient(gaussian_smooth(x, sigma))[:, margin:-margin, margin:-margin]  # [2, H - 2 margin, W - 2 margin]
     mag = torch.hypot(g[0], g[1]).flatten()
-    n = min(max(min_edges, int(top_fraction * mag.numel())), mag.numel())
+    n = min(max(16, int(top_fraction * mag.numel())), mag.numel())
     strong = torch.topk(mag, n, sorted=False).indices  # the order does not matter: only quantiles are taken
     strong = strong[mag[strong] > 0]
     inner_w = W - 2 * margin
@@ -196,10 +273,37 @@ def edge_width(
     rise, peak = slope.sum(1), slope.max(1).values
     ends = torch.maximum(slope[:, :2].abs().amax(1), slope[:, -2:].abs().amax(1))
     step = (rise > 0) & (rise >= 0.8 * slope.abs().sum(1)) & (ends < 0.2 * peak)
-    if int(step.sum()) < min_edges:
+    return xs[step], ys[step], rise[step] / peak[step]
+
+
+def edge_width(
+    gray: Tensor, reach: int = 6, top_fraction: float = 0.05, min_edges: int = 16, sigma: float = 1.0
+) -> tuple[float, float]:
+    """Width in px of the isolated step edges (:func:`step_edges`) of gray [H, W]: -> (median, 90th percentile)
+    over those edges; NaN, NaN with fewer than `min_edges` steps."""
+    return _width_quantiles(step_edges(gray, reach, top_fraction, sigma)[2], min_edges)
+
+
+def _width_quantiles(width: Tensor, min_edges: int = 16) -> tuple[float, float]:
+    if width.numel() < min_edges:
         return float("nan"), float("nan")
-    width = rise[step] / peak[step]
     return float(width.median()), float(torch.quantile(width, 0.9))
+
+
+def sharpest_region_width(
+    xs: Tensor, ys: Tensor, width: Tensor, size: tuple[int, int], regions: int = 3, min_edges: int = 8
+) -> float:
+    """Median step-edge width of the image's sharpest region: the smallest, over a ``regions`` x ``regions`` grid
+    of an image of ``size`` (H, W), of the regions' median widths (:func:`step_edges` gives xs, ys, width [m]).
+
+    A lens focused on one depth leaves some region as sharp as a sharp view; camera shake blurs every region.
+    NaN unless at least two regions hold ``min_edges`` step edges.
+    """
+    H, W = size
+    cell = (torch.clamp((ys * regions / H).long(), max=regions - 1) * regions
+            + torch.clamp((xs * regions / W).long(), max=regions - 1))  # fmt: skip
+    medians = [float(width[cell == k].median()) for k in range(regions * regions) if int((cell == k).sum()) >= min_edges]
+    return min(medians) if len(medians) >= 2 else float("nan")
 
 
 def _line_periodicity(profile: Tensor, freq: float) -> float:
@@ -266,7 +370,8 @@ def image_features(rgb: np.ndarray | Tensor, coarse_sigma: float = 2.0, max_size
     gray = analysis_view(full, max_size)
     grads = scale_gradients(gray, coarse_sigma)  # shared by the edge steepness and the detail tensor
     edge = _edge_sharpness(grads)
-    width = edge_width(gray)
+    xs, ys, widths = step_edges(gray)
+    width = _width_quantiles(widths)
     return ImageFeatures(
         width=W,
         height=H,
@@ -275,7 +380,10 @@ def image_features(rgb: np.ndarray | Tensor, coarse_sigma: float = 2.0, max_size
         edge_ratio_by_angle=edge[1],
         edge_width=width[0],
         soft_edge_width=width[1],
+        sharpest_region_width=sharpest_region_width(xs, ys, widths, tuple(gray.shape)),
         detail_tensor=_detail_tensor(grads),
+        tile_coherence=_tile_detail_coherence(grads),
+        spectral_anisotropy=spectral_anisotropy(gray),
         grid_scores=grid_scores(full),
     )
 
@@ -290,7 +398,12 @@ __all__ = [
     "grid_scores",
     "edge_sharpness",
     "edge_width",
+    "step_edges",
+    "sharpest_region_width",
     "detail_tensor",
+    "tile_detail_coherence",
+    "spectral_anisotropy",
+    "SPECTRUM_BANDS",
     "inverse_sqrt",
     "scale_gradients",
     "analysis_view",
