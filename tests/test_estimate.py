@@ -409,10 +409,16 @@ def test_the_sharpest_region_of_a_view_focused_on_one_depth_stays_sharp():
     assert math.isnan(region(np.full((64, 64, 3), 90, np.uint8)))
 
 
-def test_a_view_blurred_in_part_only_is_named_defocus():
-    # A shake blurs every region of the view; a lens focused on one depth leaves one region sharp.
+def test_a_view_blurred_in_part_only_is_named_defocus_when_the_set_rules_cannot_tell():
+    # A shake blurs every region of the view; a lens focused on one depth leaves one region sharp. (Where the set
+    # rules decide, they come first: a strong shake leaves only its sharp parallel edges measurable.)
     views = sharp_views()
     images = views[:6] + [_blur_part(v, 3.0) for v in views[6:]]
-    estimates = estimate_degradations(images)
+    # the set rules off, and a low directional loss not enough: only the region in focus can name defocus
+    region_only = EstimateConfig(max_content_anisotropy=-1.0, max_detail_spread=-1.0, defocus_direction=-math.inf)
+    estimates = estimate_degradations(images, region_only)
     assert [e.label for e in estimates[6:]] == ["defocus", "defocus"]
+    assert all(e.sharpest_region <= region_only.focused_region_width for e in estimates[6:])
     assert all(e.label == "sharp" for e in estimates[:6])
+    unread = estimate_degradations(images, replace(region_only, focused_region_width=-1.0))
+    assert all(e.label == "unknown" and e.blurred is True for e in unread[6:])

@@ -24,13 +24,15 @@ image is compared with them.
   comparing orientations bin by bin (on small photos, sharp views of one scene disagree bin by bin), but it is
   trusted only when the set's other sharp images match the references' tensor closely (views of one scene), and
   the edge widths must agree with the kind as above.
-* **motion / defocus, from the image alone**: before those rules, a blurred image whose sharpest region has step
-  edges as narrow as the sharp images' is defocused (a lens focused on one depth; a shake blurs every region),
-  unless its detail loss is directional. After them, where the kind is still unknown, the image's own
-  directional loss decides (:attr:`DegradationEstimate.directional_loss`: how consistently its regions lost detail
-  along one orientation, and how anisotropic its spectrum's fall-off is): above ``motion_direction`` motion,
-  below ``defocus_direction`` defocus. It needs no other image, so it also names the kind in sets whose views show
-  different content, and in images between sharp and blurred when it says motion.
+* **motion / defocus, from the image alone**: where those rules leave the kind unknown, a blurred image whose
+  sharpest region has step edges as narrow as the sharp images' is defocused (a lens focused on one depth; a shake
+  blurs every region) unless its detail loss is directional, and otherwise the image's own directional loss
+  decides (:attr:`DegradationEstimate.directional_loss`: how consistently its regions lost detail along one
+  orientation, and how anisotropic its spectrum's fall-off is): above ``motion_direction`` motion, below
+  ``defocus_direction`` defocus. It needs no other image, so it also names the kind in sets whose views show
+  different content, and in images between sharp and blurred when it says motion. It comes after the set rules
+  because a strong shake leaves measurable only the step edges along it, which are sharp: the sharpest region of
+  a shaken photo can look in focus.
 """
 
 from __future__ import annotations
@@ -45,10 +47,10 @@ from torch import Tensor
 from .features import MIXRES_GROUPS, ImageFeatures, image_features, inverse_sqrt
 
 LABELS = ("sharp", "motion", "defocus", "mixres", "unknown")
-METHOD_VERSION = 3
+METHOD_VERSION = 4
 """Raised whenever the same images and config get other labels (cached estimates and benchmark runs that trained
 on them are then computed again). 2: the detail-tensor second opinion on the kind of blur. 3: the kind of blur
-from the image alone (region in focus, directional loss)."""
+from the image alone (region in focus, directional loss). 4: the region in focus only after the set rules."""
 
 
 @dataclass
@@ -353,11 +355,6 @@ def estimate_from_features(
     detail_ok = detail_spread <= cfg.max_detail_spread
     def kind_of(i: int) -> tuple[str, float]:
         """(motion / defocus / unknown, confidence of the kind) of blurred image i, the rules in turn."""
-        # a region as sharp as the sharp views' in a blurred view: a lens focused on one depth, whatever else the
-        # orientations say (they then show where the blur is, not a direction)
-        region = region_width[i] if len(sharp_idx) >= 2 else math.nan
-        if region <= cfg.focused_region_width and not directional[i] > cfg.motion_direction:
-            return "defocus", _confidence(region, cfg.focused_region_width, 1.5)
         if direction_ok:
             label = "motion" if aniso[i] >= cfg.anisotropy_threshold else "defocus"
             limit = cfg.max_motion_width_spread if label == "motion" else cfg.max_defocus_width_spread
@@ -368,6 +365,8 @@ def estimate_from_features(
             if label != "unknown":
                 threshold = cfg.motion_isotropy if label == "motion" else cfg.defocus_isotropy
                 return label, _confidence(isotropy[i], threshold, 1.25)
+        # the sharpest region is compared with the narrowest-edged images: only trusted when some images are sharp
+        region = region_width[i] if len(sharp_idx) >= 2 else math.nan
         label = _kind_from_direction(directional[i], region, cfg)
         if label != "unknown":
             threshold = cfg.motion_direction if label == "motion" else cfg.defocus_direction
