@@ -20,7 +20,8 @@ from gsmsdr_ns.io.images import write_image
 from gsmsdr_ns.degrade.kernels import apply_mixres, convolve_psf, disk_blur, motion_kernel_from_trajectory
 from gsmsdr_ns.estimate import EstimateConfig, estimate_degradations
 from gsmsdr_ns.estimate.cli import parse
-from gsmsdr_ns.estimate.features import edge_width, to_gray
+from gsmsdr_ns.estimate.edges import edge_width
+from gsmsdr_ns.estimate.image_ops import to_gray
 from gsmsdr_ns.estimate.records import (
     CACHE_FILE,
     ESTIMATED,
@@ -311,7 +312,7 @@ def test_evaluation_scores_a_scene_against_its_records(capture, tmp_path):
 def test_sobel_gradient_matches_kornia():
     from kornia.filters import spatial_gradient
 
-    from gsmsdr_ns.estimate.features import sobel_gradient
+    from gsmsdr_ns.estimate.image_ops import sobel_gradient
 
     gray = to_gray(sharp_views()[0]).float()
     expected = spatial_gradient(gray[None, None], mode="sobel", normalized=True)[0, 0]
@@ -357,7 +358,7 @@ def test_small_real_photos_get_their_kind_of_blur_from_the_detail_tensor():
 
 
 def test_the_detail_tensor_shrinks_across_a_motion_and_alike_under_defocus():
-    from gsmsdr_ns.estimate.features import detail_tensor
+    from gsmsdr_ns.estimate.direction import detail_tensor
 
     photo = sharp_views()[0]
     sharp = detail_tensor(to_gray(photo))
@@ -380,7 +381,7 @@ def _blur_part(rgb: np.ndarray, radius: float, share: float = 2 / 3) -> np.ndarr
 
 
 def test_a_shake_takes_detail_along_one_direction_in_every_region():
-    from gsmsdr_ns.estimate.features import spectral_anisotropy, tile_detail_coherence
+    from gsmsdr_ns.estimate.direction import spectral_anisotropy, tile_detail_coherence
 
     photo = sharp_views()[0]
     along_x = motion_blur(photo)
@@ -395,7 +396,7 @@ def test_a_shake_takes_detail_along_one_direction_in_every_region():
 
 
 def test_the_sharpest_region_of_a_view_focused_on_one_depth_stays_sharp():
-    from gsmsdr_ns.estimate.features import sharpest_region_width, step_edges
+    from gsmsdr_ns.estimate.edges import sharpest_region_width, step_edges
 
     photo = sharp_views()[0]
 

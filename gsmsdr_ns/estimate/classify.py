@@ -5,7 +5,7 @@ so every decision is relative to the SET: its reference images are the ones with
 image is compared with them.
 
 * **mixres**: an image upsampled from a lower resolution keeps the grid of its low-resolution samples
-  (:func:`~gsmsdr_ns.estimate.features.grid_scores`); a grid at factor f (much stronger than in the reference
+  (:func:`~gsmsdr_ns.estimate.grid.grid_scores`); a grid at factor f (much stronger than in the reference
   images, so a camera's own periodic artefacts do not count) gives mixres with f snapped to the project's groups.
 * **sharp / blurred**: edge steepness and Laplacian variance relative to the reference images, combined. An
   image that passes as sharp but whose softest step edges are much wider than those of the set's narrowest-edged
@@ -19,7 +19,7 @@ image is compared with them.
   the sharp images of the set themselves spread over orientations that much (content that differs from view to
   view), or when fewer than two sharp images leave that spread unmeasured.
 * **motion / defocus, second opinion**: where that rule leaves the kind unknown, the image's detail tensor
-  (:func:`~gsmsdr_ns.estimate.features.detail_tensor`, relative to the reference images') decides: defocus
+  (:func:`~gsmsdr_ns.estimate.direction.detail_tensor`, relative to the reference images') decides: defocus
   shrinks it alike along every orientation, motion blur mostly along one. It sums over the whole image instead of
   comparing orientations bin by bin (on small photos, sharp views of one scene disagree bin by bin), but it is
   trusted only when the set's other sharp images match the references' tensor closely (views of one scene), and
@@ -44,7 +44,8 @@ from typing import Optional, Sequence
 import numpy as np
 from torch import Tensor
 
-from .features import MIXRES_GROUPS, ImageFeatures, image_features, inverse_sqrt
+from .direction import inverse_sqrt
+from .features import MIXRES_GROUPS, ImageFeatures, image_features
 
 LABELS = ("sharp", "motion", "defocus", "mixres", "unknown")
 METHOD_VERSION = 4
