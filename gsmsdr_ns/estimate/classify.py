@@ -354,6 +354,7 @@ def estimate_from_features(
     isotropy, detail_spread = _detail_evidence(feats, ref, sharp_idx)
     directional = np.array([_directional_loss(f) for f in feats])
     detail_ok = detail_spread <= cfg.max_detail_spread
+
     def kind_of(i: int) -> tuple[str, float]:
         """(motion / defocus / unknown, confidence of the kind) of blurred image i, the rules in turn."""
         if direction_ok:
@@ -394,7 +395,8 @@ def estimate_from_features(
                 # only a directional loss of detail: a region in focus or a low directional loss is what a sharp
                 # view of soft content shows as well
                 label = "motion"
-                conf = min(_confidence(directional[i], cfg.motion_direction, 2.0), _confidence(sharp[i], cfg.sharp_threshold, 2.0))
+                conf = min(_confidence(directional[i], cfg.motion_direction, 2.0),
+                           _confidence(sharp[i], cfg.sharp_threshold, 2.0))  # fmt: skip
         else:
             blurred = True
             label, conf_kind = kind_of(i)
