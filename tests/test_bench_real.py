@@ -132,11 +132,12 @@ def test_invalid_real_scene_names_file_and_key(tmp_path: Path, old: str, new: st
 
 
 def test_missing_photo_set_says_where_it_looked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    fern = shared_fern()  # found before the data folder is pointed elsewhere (it may be how fern is found)
     monkeypatch.setenv(DATA_DIR_ENV, str(tmp_path))
     monkeypatch.chdir(tmp_path)
     with pytest.raises(InputError, match=rf"photo set 'no-such-set'.*{tmp_path}/no-such-set/images_16.*{DATA_DIR_ENV}"):
         resolve_photos(RealSceneSpec(dataset="no-such-set"))
-    assert resolve_photos(RealSceneSpec(dataset=str(shared_fern()))) == shared_fern() / "images_16"
+    assert resolve_photos(RealSceneSpec(dataset=str(fern))) == fern / "images_16"
 
 
 def test_each_method_gets_its_scene(built) -> None:
