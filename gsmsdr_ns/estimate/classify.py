@@ -288,11 +288,9 @@ def _kind_from_direction(directional: float, region: float, cfg: EstimateConfig)
     set's narrowest-edged images; NaN: no evidence). The edge-width spread is not asked here: a lens focused on one
     depth widens it as a shake does."""
     in_focus = region <= cfg.focused_region_width  # part of the view as sharp as a sharp view: a lens
-    if in_focus and not directional > cfg.motion_direction:
-        return "defocus"
-    if directional > cfg.motion_direction and not in_focus:
-        return "motion"
-    if directional < cfg.defocus_direction:
+    if directional > cfg.motion_direction:
+        return "unknown" if in_focus else "motion"  # a directional loss and a region in focus disagree
+    if in_focus or directional < cfg.defocus_direction:
         return "defocus"
     return "unknown"  # NaN included
 

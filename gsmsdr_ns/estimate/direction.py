@@ -66,18 +66,17 @@ def tile_detail_coherence(gray: Tensor, sigma: float = 2.0, tiles: int = 4) -> f
 def _tile_detail_coherence(grads: Tensor, tiles: int = 4) -> float:
     """:func:`tile_detail_coherence` from ``grads`` [2, 2, h, w] of :func:`scale_gradients`."""
     h, w = grads.shape[-2:]
-    tensors = []
-    for i in range(tiles):
-        for j in range(tiles):
-            cell = grads[..., i * h // tiles : (i + 1) * h // tiles, j * w // tiles : (j + 1) * w // tiles]
-            tensors.append((_structure_tensor(cell[0]), _structure_tensor(cell[1])))
-    strength = np.array([np.trace(c) for _, c in tensors])
+    cells = [grads[..., i * h // tiles : (i + 1) * h // tiles, j * w // tiles : (j + 1) * w // tiles]
+             for i in range(tiles) for j in range(tiles)]  # fmt: skip
+    strength = np.array([np.trace(_structure_tensor(cell[1])) for cell in cells])  # coarse gradient energy
     vectors = []
-    for (fine, coarse), s in zip(tensors, strength):
-        whiten = inverse_sqrt(coarse)
-        if whiten is None or s < 1e-3 * strength.max():  # a flat tile says nothing about direction
+    for cell, s in zip(cells, strength):
+        if s < 1e-3 * strength.max():  # a flat tile says nothing about direction
             continue
-        values, vecs = np.linalg.eigh(whiten @ fine @ whiten)
+        tensor = _detail_tensor(cell)
+        if not np.all(np.isfinite(tensor)):
+            continue
+        values, vecs = np.linalg.eigh(tensor)
         if values[0] <= 0:
             continue
         angle = math.atan2(vecs[1, 0], vecs[0, 0])  # the orientation that kept the least detail

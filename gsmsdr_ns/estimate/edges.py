@@ -113,7 +113,8 @@ def sharpest_region_width(
     H, W = size
     cell = (torch.clamp((ys * regions / H).long(), max=regions - 1) * regions
             + torch.clamp((xs * regions / W).long(), max=regions - 1))  # fmt: skip
-    medians = [float(width[cell == k].median()) for k in range(regions * regions) if int((cell == k).sum()) >= min_edges]
+    counts = torch.bincount(cell, minlength=regions * regions)
+    medians = [float(width[cell == k].median()) for k in range(regions * regions) if int(counts[k]) >= min_edges]
     return min(medians) if len(medians) >= 2 else float("nan")
 
 
