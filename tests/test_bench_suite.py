@@ -185,6 +185,69 @@ def test_fingerprint_follows_the_resolved_preset(tmp_path: Path, monkeypatch: py
     assert fingerprint(suite, plain) != plain_before
 
 
+SHARED_TRAINING_SUITE = """\
+name: shared
+scene_defaults: {width: 48, height: 36, num_views: 8, hold: 4, num_points: 300, seed: 0}
+scenes: [motion, defocus]
+methods: [plain, sharp]
+steps: [6]
+schedule: {num_downscales: 0}
+threads: 1
+lpips: false
+"""
+
+
+def test_runs_with_the_same_training_train_once(tmp_path: Path) -> None:
+    """The sharp upper bound of two scenes made from the same sharp scene trains once; the other run gets a copy of
+    its record (its own id and fingerprint), and a rerun reuses both. Real training, tiny scenes."""
+    from gsmsdr_ns.bench.runner import plan_runs, training_identity
+
+    suite = load_suite(write_suite(tmp_path, SHARED_TRAINING_SUITE))
+    out = tmp_path / "out"
+    motion_sharp, defocus_sharp = RunKey("motion", "sharp", 6, 0), RunKey("defocus", "sharp", 6, 0)
+    assert training_identity(suite, motion_sharp) == training_identity(suite, defocus_sharp)
+    assert training_identity(suite, RunKey("motion", "plain", 6, 0)) != training_identity(suite, motion_sharp)
+    assert training_identity(suite, RunKey("motion", "sharp", 6, 1)) != training_identity(suite, motion_sharp)
+    plan = plan_runs(suite, out)
+    assert [k.id for k in plan.todo] == ["motion__plain__6__s0", "motion__sharp__6__s0", "defocus__plain__6__s0"]
+    assert {k: v.id for k, v in plan.same_as.items()} == {defocus_sharp.id: motion_sharp.id}
+
+    outcome = run_suite(suite, out, progress=False, plots=False)
+    assert sorted(outcome.trained) == sorted(k.id for k in plan.todo) and outcome.copied == [defocus_sharp.id]
+    assert not outcome.failed
+    source, copy = (finished_record(suite, out, k) for k in (motion_sharp, defocus_sharp))
+    assert source is not None and copy is not None
+    assert copy["id"] == defocus_sharp.id and copy["scene"] == "defocus" and copy["same_training_as"] == source["id"]
+    assert copy["fingerprint"] == fingerprint(suite, defocus_sharp) != source["fingerprint"]
+    assert copy["psnr"] == source["psnr"] and copy["curve"] == source["curve"] and copy["data"] == source["data"]
+    assert len(outcome.records) == 4
+    assert "- 1 of them trained the same images" in (out / "results.md").read_text(encoding="utf8")
+
+    again = run_suite(suite, out, progress=False, plots=False)
+    assert again.trained == [] and again.copied == [] and len(again.reused) == 4
+
+
+def test_a_preset_that_degrades_nothing_shares_its_sharp_photos_scene() -> None:
+    """On the real-photo suite, the sharp fern's "sharp photos with the degraded photos' poses" bound, its plain
+    Gaussians and every scene's sharp upper bound read the same folder (named without building it), so they train
+    once per seed; the degraded scenes' own rows do not."""
+    from gsmsdr_ns.bench.runner import training_identity
+
+    suite = load_suite(find_suite_file("real"))
+    sharp = suite.scene("fern-sharp")
+    assert sharp.data_key(METHODS["sharp-degraded-poses"]) == sharp.data_key(METHODS["sharp"])
+    assert sharp.data_key(METHODS["plain"]) == sharp.data_key(METHODS["sharp"])
+    motion = suite.scene("fern-motion")
+    assert motion.data_key(METHODS["sharp-degraded-poses"]) != motion.data_key(METHODS["sharp"])
+    assert motion.data_key(METHODS["sharp"]) == sharp.data_key(METHODS["sharp"])
+    identities = {run.id: training_identity(suite, run) for run in suite.runs() if run.seed == 0}
+    same = identities["fern-motion__sharp__3000__s0"]
+    assert sorted(k for k, v in identities.items() if v == same) == [
+        "fern-defocus__sharp__3000__s0", "fern-motion__sharp__3000__s0", "fern-sharp__plain__3000__s0",
+        "fern-sharp__sharp-degraded-poses__3000__s0", "fern-sharp__sharp__3000__s0"]  # fmt: skip
+    assert len(set(identities.values())) == len(identities) - 4
+
+
 def test_quick_flag_maps_to_the_quick_suite() -> None:
     assert map_quick(["--quick"]) == ["suite", "--config", "quick"]
     assert map_quick(["--quick", "--out", "x"]) == ["suite", "--config", "quick", "--out", "x"]

@@ -175,8 +175,10 @@ class SuiteBench:
         except KeyboardInterrupt:
             raise SystemExit(130) from None
         print(main_tables((out / "results.md").read_text(encoding="utf8")))
+        copied = f", {len(outcome.copied)} copied from a run with the same training" if outcome.copied else ""
         print(f"suite {suite.name}: {len(outcome.trained)} runs trained, {len(outcome.reused)} reused, "
-              f"{len(outcome.failed)} failed, {len(outcome.skipped)} skipped in {time.perf_counter() - started:.0f} s")
+              f"{len(outcome.failed)} failed, {len(outcome.skipped)} skipped{copied} in "
+              f"{time.perf_counter() - started:.0f} s")
         print("wrote " + ", ".join(str(p) for p in outcome.outputs))
         if self.publish is not None:
             print("published " + ", ".join(str(p) for p in publish_outputs(out, self.publish, outcome.outputs)))

@@ -25,7 +25,7 @@ import signal
 import sys
 import time
 import traceback
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Tuple
 
@@ -79,7 +79,47 @@ def fingerprint(suite: Suite, key: RunKey) -> str:
         from gsmsdr_ns.estimate.records import estimate_fingerprint
 
         payload["estimate"] = estimate_fingerprint()  # a real-photo scene trains on the records estimated for it
+    return _digest(payload)
+
+
+def training_identity(suite: Suite, key: RunKey) -> str:
+    """What run ``key`` trains, whatever its scene and method are called: the images it reads
+    (:meth:`SceneEntry.data_key`), the resolved model and optimizer settings, steps, seed, schedule and evaluation.
+    Runs of a suite with equal identities would train the same model on the same data: one trains, the others copy
+    its record (e.g. the sharp upper bound of every scene degraded from the same sharp photos, or plain Gaussians
+    on a scene whose records say every image is sharp next to that upper bound)."""
+    method = METHODS[key.method]
+    scene = suite.scene(key.scene)
+    payload = {
+        "version": RECORD_VERSION,
+        "data": scene.data_key(method),
+        "preset": preset_fingerprint(method),
+        "steps": key.steps,
+        "seed": key.seed,
+        "schedule": schedule_settings(suite.schedule_for(key.steps)),
+        "eval_steps": suite.eval_steps(key.steps),
+        "lpips": suite.lpips,
+        "align_poses": suite.align_poses,
+    }
+    if scene.trains_on_estimated_records(method):
+        from gsmsdr_ns.estimate.records import estimate_fingerprint
+
+        payload["estimate"] = estimate_fingerprint()
+    return _digest(payload)
+
+
+def _digest(payload: Dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def copied_record(suite: Suite, key: RunKey, source: Dict[str, Any]) -> Dict[str, Any]:
+    """The record of run ``key`` made from the record ``source`` of a run with the same
+    :func:`training_identity`: its numbers, under ``key``'s id, names and fingerprint, marked ``same_training_as``
+    the source's id."""
+    record = copy.deepcopy(source)
+    record.update(id=key.id, suite=suite.name, scene=key.scene, method=key.method, steps=key.steps, seed=key.seed,
+                  fingerprint=fingerprint(suite, key), same_training_as=source.get("same_training_as", source["id"]))
+    return record
 
 
 def train_and_record(
@@ -204,23 +244,56 @@ class SuiteOutcome:
     failed: Dict[str, str]
     skipped: Dict[str, str]
     outputs: List[Path]
+    copied: List[str] = field(default_factory=list)
+    """Ids of runs whose record was copied from a run with the same training (:func:`training_identity`)."""
 
 
-def plan_runs(suite: Suite, out: Path) -> Tuple[List[RunKey], List[str], Dict[str, str]]:
-    """(runs to train, ids of runs with a finished record in ``out/runs``, {id: why} of runs no scene supports), in
-    the suite's run order."""
-    todo: List[RunKey] = []
-    reused: List[str] = []
-    skipped: Dict[str, str] = {}
+@dataclass
+class RunPlan:
+    """What :func:`run_suite` does with each run of a suite, in the suite's run order."""
+
+    todo: List[RunKey]
+    """Runs to train."""
+    reused: List[str]
+    """Ids of runs with a finished record in ``out/runs``."""
+    skipped: Dict[str, str]
+    """{id: why} of runs no scene supports."""
+    same_as: Dict[str, RunKey] = field(default_factory=dict)
+    """{id: source} of runs that are not trained because ``source`` (finished, or trained earlier in ``todo``) has
+    the same :func:`training_identity`: they get a copy of its record."""
+    keys: Dict[str, RunKey] = field(default_factory=dict)
+    """Every run of the suite by id."""
+
+    @property
+    def total(self) -> int:
+        return len(self.todo) + len(self.reused) + len(self.skipped) + len(self.same_as)
+
+
+def plan_runs(suite: Suite, out: Path) -> RunPlan:
+    """Sort every run of ``suite`` into :class:`RunPlan`'s lists."""
+    plan = RunPlan([], [], {})
+    finished: Dict[str, RunKey] = {}  # training identity -> a run with a finished record
+    trained: Dict[str, RunKey] = {}  # training identity -> the run in todo that trains it
+    pending: List[RunKey] = []
     for key in suite.runs():
+        plan.keys[key.id] = key
         scene, method = suite.scene(key.scene), METHODS[key.method]
         if not scene.supports(method):
-            skipped[key.id] = f"scene {scene.name} has no sharp_path for the sharp upper bound"
+            plan.skipped[key.id] = f"scene {scene.name} has no sharp_path for the sharp upper bound"
         elif finished_record(suite, out, key) is not None:
-            reused.append(key.id)
+            plan.reused.append(key.id)
+            finished.setdefault(training_identity(suite, key), key)
         else:
-            todo.append(key)
-    return todo, reused, skipped
+            pending.append(key)
+    for key in pending:
+        identity = training_identity(suite, key)
+        source = finished.get(identity) or trained.get(identity)
+        if source is not None:
+            plan.same_as[key.id] = source
+        else:
+            trained[identity] = key
+            plan.todo.append(key)
+    return plan
 
 
 def run_suite(
@@ -250,8 +323,18 @@ def run_suite(
     console = console or Console(file=sys.stdout)
     machine = machine_info()
 
-    todo, reused, skipped = plan_runs(suite, out)
-    total = len(todo) + len(reused) + len(skipped)  # plan_runs sorts every run of the suite into one of them
+    plan = plan_runs(suite, out)
+    todo, reused, skipped = plan.todo, list(plan.reused), plan.skipped
+    followers: Dict[str, List[RunKey]] = {}  # a run in todo -> the runs that copy its record once it is trained
+    copied: List[str] = []
+
+    def copy_record(key: RunKey, source: RunKey) -> None:
+        source_record = load_record(record_path(out, source))
+        assert source_record is not None
+        write_json_atomic(record_path(out, key), copied_record(suite, key, source_record))
+        copied.append(key.id)
+        console.print(f"{key.id}: same training as {source.id} (same images, model, settings and seed): its record "
+                      "is copied")  # fmt: skip
     lpips = None
     if suite.lpips and todo:
         lpips = make_lpips("cuda" if torch.cuda.is_available() else "cpu")
@@ -259,8 +342,14 @@ def run_suite(
         console.print("[yellow]LPIPS: torchvision's AlexNet weights are not in the torch hub cache; LPIPS is left out "
                       "(nothing is downloaded)[/yellow]")  # fmt: skip
 
-    console.print(f"suite [bold]{suite.name}[/bold]: {total} runs ({len(reused)} already finished, "
-                  f"{len(todo)} to train, {len(skipped)} skipped) -> {out}")  # fmt: skip
+    console.print(f"suite [bold]{suite.name}[/bold]: {plan.total} runs ({len(reused)} already finished, "
+                  f"{len(todo)} to train, {len(plan.same_as)} sharing another run's training, {len(skipped)} "
+                  f"skipped) -> {out}")  # fmt: skip
+    for id_, source in plan.same_as.items():
+        if source.id in reused:
+            copy_record(plan.keys[id_], source)
+        else:
+            followers.setdefault(source.id, []).append(plan.keys[id_])
     trained: List[str] = []
     failed: Dict[str, str] = {}
     outputs: List[Path] = []
@@ -275,7 +364,8 @@ def run_suite(
     try:
         with Progress(*columns, console=console, disable=not progress, redirect_stdout=False,
                       redirect_stderr=False) as bars:  # fmt: skip
-            suite_task = bars.add_task(f"{suite.name}", total=total, completed=total - len(todo), info="")
+            left = len(todo) + sum(len(f) for f in followers.values())
+            suite_task = bars.add_task(f"{suite.name}", total=plan.total, completed=plan.total - left, info="")
             for key in todo:
                 current = key.id
                 run_task = bars.add_task(f"  {key.scene} {key.method} s{key.seed}", total=key.steps, info="")
@@ -297,6 +387,8 @@ def run_suite(
                     trained.append(key.id)
                     console.print(f"{key.id}: PSNR {record['psnr']:.2f}  SSIM {record['ssim']:.4f}  train "
                                   f"{record['train_seconds']:.0f} s ({record['step_ms']:.0f} ms/step)")  # fmt: skip
+                    for follower in followers.get(key.id, []):
+                        copy_record(follower, key)
                 except Exception as e:  # noqa: BLE001 - one failed run does not stop the suite
                     with open(log_path, "a", encoding="utf8") as log_file:
                         log_file.write(traceback.format_exc())
@@ -305,18 +397,22 @@ def run_suite(
                                   f"{type(e).__name__}: {e} (log: {log_path})[/red]")  # fmt: skip
                 finally:
                     bars.remove_task(run_task)
+                for follower in followers.get(key.id, []):
+                    if key.id in failed:
+                        failed[follower.id] = f"same training as {key.id}, which failed"
                 current = f"writing the outputs after {key.id}"
-                bars.advance(suite_task, 1)
+                bars.advance(suite_task, 1 + len(followers.get(key.id, [])))
                 refresh()
                 if interrupt_after is not None and len(trained) + len(failed) >= interrupt_after:
                     signal.raise_signal(signal.SIGINT)
     except KeyboardInterrupt:
-        console.print(f"[red]interrupted ({current or 'before the first run'}); {len(trained) + len(reused)} "
+        console.print(f"[red]interrupted ({current or 'before the first run'}); "
+                      f"{len(trained) + len(reused) + len(copied)} "
                       "finished runs are kept in runs/: run the same command again to resume[/red]")  # fmt: skip
         raise
     refresh()
     records = collect_records(suite, out)
-    return SuiteOutcome(records, trained, reused, failed, skipped, outputs)
+    return SuiteOutcome(records, trained, reused, failed, skipped, outputs, copied)
 
 
 def collect_records(suite: Suite, out: Path) -> List[Dict[str, Any]]:
@@ -337,6 +433,9 @@ __all__ = [
     "finished_record",
     "preset_fingerprint",
     "plan_runs",
+    "RunPlan",
+    "training_identity",
+    "copied_record",
     "record_path",
     "run_suite",
     "train_and_record",

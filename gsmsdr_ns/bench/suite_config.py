@@ -57,6 +57,20 @@ class SceneEntry:
         twin without records)."""
         return self.real is not None and method.has_blur_field and self._records(method) == "estimated"
 
+    def _real_folder(self, method: MethodSpec) -> tuple[RealSceneSpec, str, str]:
+        """(spec, records, photos) of the real-photo scene ``method`` trains on (:func:`ensure_real_scene`'s
+        arguments). A preset that degrades nothing leaves the sharp photos as they are, so its "sharp photos posed
+        by the degraded photos" are its own scene: the same folder serves both."""
+        from gsmsdr_ns.bench.real_scenes import degrade_config
+
+        assert self.real is not None
+        if method.sharp_data and method.degraded_poses:
+            if degrade_config(self.real).resolved_effects():
+                return self.real, "estimated", "sharp"
+            return self.real, "estimated", "degraded"
+        real = self.real.sharp_twin() if method.sharp_data else self.real
+        return real, self._records(method), "degraded"
+
     def data(self, method: MethodSpec, scene_root: Path, log: Optional[Callable[[str], None]] = None) -> Path:
         """The scene folder ``method`` trains on (generated on first use, under ``scene_root/scenes``)."""
         if self.spec is not None:
@@ -67,13 +81,23 @@ class SceneEntry:
         if self.real is not None:
             from gsmsdr_ns.bench.real_scenes import ensure_real_scene
 
-            if method.sharp_data and method.degraded_poses:
-                return ensure_real_scene(scene_root, self.real, log=log, photos="sharp")
-            real = self.real.sharp_twin() if method.sharp_data else self.real
-            return ensure_real_scene(scene_root, real, self._records(method), log=log)
+            real, records, photos = self._real_folder(method)
+            return ensure_real_scene(scene_root, real, records, log=log, photos=photos)
         path = self.sharp_path if method.sharp_data else self.path
         assert path is not None
         return path
+
+    def data_key(self, method: MethodSpec) -> Dict[str, Any]:
+        """What names the folder :meth:`data` gives ``method``, without building it: two runs whose keys are
+        equal read the same images, poses and records (whatever their scene is called)."""
+        if self.spec is not None:
+            spec = self.spec.with_variant("sharp") if method.sharp_data else self.spec
+            return {"generated": dataclasses.asdict(spec)}
+        if self.real is not None:
+            real, records, photos = self._real_folder(method)
+            return {**self.fingerprint(), "real": dataclasses.asdict(real), "records": records, "photos": photos}
+        path = self.sharp_path if method.sharp_data else self.path
+        return {"path": str(Path(str(path)).resolve())}
 
     def configure(self, config) -> None:
         """Scene-specific reader settings on a method's TrainerConfig (a real scene's downscaled copies)."""
