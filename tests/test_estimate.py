@@ -210,8 +210,8 @@ def test_scene_records_are_cached_until_an_image_changes(capture, tmp_path):
     assert not (scene / "degradation.json").exists()  # the cache never touches the scene's records
 
 
-SET_RULES_ONLY = EstimateConfig(motion_direction=math.inf, defocus_direction=-math.inf)
-"""The estimate without the rules that read a blurred image alone (directional loss, region in focus)."""
+SET_RULES_ONLY = EstimateConfig(motion_direction=math.inf, defocus_direction=-math.inf, kind_from_blur_shape=False)
+"""The estimate without the rules that read a blurred image alone (directional loss, region in focus, blur shape)."""
 
 
 def test_views_of_different_content_get_their_kind_of_blur_from_the_image_alone():
@@ -421,5 +421,52 @@ def test_a_view_blurred_in_part_only_is_named_defocus_when_the_set_rules_cannot_
     assert [e.label for e in estimates[6:]] == ["defocus", "defocus"]
     assert all(e.sharpest_region <= region_only.focused_region_width for e in estimates[6:])
     assert all(e.label == "sharp" for e in estimates[:6])
-    unread = estimate_degradations(images, replace(region_only, focused_region_width=-1.0))
+    unread = estimate_degradations(images, replace(region_only, focused_region_width=-1.0, kind_from_blur_shape=False))
     assert all(e.label == "unknown" and e.blurred is True for e in unread[6:])
+
+
+def dwelling_shake(rgb: np.ndarray, length: float, angle: float) -> np.ndarray:
+    """rgb shaken along a straight `length` px path at `angle` that the camera leaves slowly and crosses fast (it
+    dwells near the start, as a hand does between jerks): a peaked line spread with a long tail."""
+    s = length * np.linspace(0.0, 1.0, 61) ** 3 - length / 2
+    path = np.stack([s * math.cos(angle), s * math.sin(angle)], axis=1)
+    return _uint8(convolve_psf(_tensor(rgb), motion_kernel_from_trajectory(path).float()))
+
+
+def test_the_blur_shape_measures():
+    from gsmsdr_ns.estimate.direction import tile_detail_spread
+    from gsmsdr_ns.estimate.edges import edge_rise_ratio
+
+    photo = sharp_views()[0]
+    shaken = [edge_rise_ratio(to_gray(dwelling_shake(photo, length, 0.3))) for length in (9, 12)]
+    disks = [edge_rise_ratio(to_gray(defocus_by(photo, radius))) for radius in (2.0, 3.0, 4.0)]
+    threshold = EstimateConfig().motion_edge_rise
+    assert min(shaken) > threshold >= max(disks), (shaken, disks)
+    assert 0.8 < min(disks)
+    # fine detail over the tiles: a lens focused on part of the view keeps its spread, a blur of all of it narrows it
+    spread = {name: tile_detail_spread(to_gray(rgb)) for name, rgb in [
+        ("sharp", photo), ("part", _blur_part(photo, 3.0)), ("disk", defocus_by(photo, 3.0)),
+        ("shake", motion_blur(photo)), ("dwell", dwelling_shake(photo, 12, 0.3))]}  # fmt: skip
+    assert spread["part"] > EstimateConfig().focused_detail_spread * spread["sharp"], spread
+    assert max(spread["disk"], spread["shake"], spread["dwell"]) < 0.7 * spread["sharp"], spread
+    flat = to_gray(np.full((64, 64, 3), 90, np.uint8))
+    assert math.isnan(tile_detail_spread(flat)) and math.isnan(edge_rise_ratio(flat))
+    assert math.isnan(edge_rise_ratio(to_gray(photo[:40, :40])))  # too few blurred step edges
+
+
+def test_kinds_the_other_rules_leave_unknown_come_from_the_blur_shape():
+    views = sharp_views()
+    images = views[:4] + [dwelling_shake(views[4], 12, 0.4), dwelling_shake(views[5], 12, 2.0),
+                          defocus_by(views[6], 3.0), defocus_by(views[7], 3.5)]  # fmt: skip
+    # every earlier rule off: the set rules (no set qualifies), the directional loss and the region in focus
+    shape_only = EstimateConfig(max_content_anisotropy=-1.0, max_detail_spread=-1.0, motion_direction=math.inf,
+                                defocus_direction=-math.inf, focused_region_width=-1.0)  # fmt: skip
+    estimates = estimate_degradations(images, shape_only)
+    assert [e.label for e in estimates] == ["sharp"] * 4 + ["motion"] * 2 + ["defocus"] * 2
+    assert all(e.edge_rise > shape_only.motion_edge_rise for e in estimates[4:6])
+    assert all(e.detail_spread < shape_only.focused_detail_spread for e in estimates[4:])
+    # a blur that left some tiles as detailed as the sharp views' is a lens focused on one depth, whatever its edges
+    focused = estimate_degradations(images, replace(shape_only, focused_detail_spread=0.0))
+    assert [e.label for e in focused[4:]] == ["defocus"] * 4
+    unread = estimate_degradations(images, replace(shape_only, kind_from_blur_shape=False))
+    assert all(e.label == "unknown" and e.blurred is True for e in unread[4:])

@@ -33,6 +33,12 @@ image is compared with them.
   different content, and in images between sharp and blurred when it says motion. It comes after the set rules
   because a strong shake leaves measurable only the step edges along it, which are sharp: the sharpest region of
   a shaken photo can look in focus.
+* **motion / defocus, from the blur's shape**: where every rule above leaves the kind unknown (curved shakes,
+  views defocused everywhere), a blurred image whose fine detail is still spread over its tiles as unevenly as in
+  the set's sharp images is defocused (a lens focused on one depth kept some tiles detailed; a shake takes detail
+  from every tile). Otherwise the profile across its blurred step edges decides
+  (:attr:`DegradationEstimate.edge_rise`): a peaked line spread with a tail (a shake that dwells at one place and
+  moves briefly) is motion, a rounded one (a disk) defocus.
 """
 
 from __future__ import annotations
@@ -48,10 +54,11 @@ from .direction import inverse_sqrt
 from .features import MIXRES_GROUPS, ImageFeatures, image_features
 
 LABELS = ("sharp", "motion", "defocus", "mixres", "unknown")
-METHOD_VERSION = 4
+METHOD_VERSION = 5
 """Raised whenever the same images and config get other labels (cached estimates and benchmark runs that trained
 on them are then computed again). 2: the detail-tensor second opinion on the kind of blur. 3: the kind of blur
-from the image alone (region in focus, directional loss). 4: the region in focus only after the set rules."""
+from the image alone (region in focus, directional loss). 4: the region in focus only after the set rules. 5: the
+blur's shape (detail spread over tiles, edge rise) names the kind the other rules leave unknown."""
 
 
 @dataclass
@@ -110,6 +117,16 @@ class EstimateConfig:
     focused_region_width: float = 1.15
     """A blurred image whose sharpest region's step edges are at most this many times as wide as the set's
     narrowest-edged images' is defocused (a lens focused on one depth) unless its loss of detail is directional."""
+    focused_detail_spread: float = 0.84
+    """Where every rule above leaves the kind of a blurred image unknown, one whose fine detail is spread over its
+    tiles at least this unevenly, relative to the set's sharp images (see `DegradationEstimate.detail_spread`), is
+    defocused: a lens focused on one depth kept some tiles detailed ..."""
+    motion_edge_rise: float = 1.13
+    """... and otherwise (every tile lost detail) the shape of the blur across its step edges decides: a 10-90 %
+    rise over width (`DegradationEstimate.edge_rise`) above this (a peaked line spread with a tail: a shake that
+    dwells and moves) is motion-blurred, at most this (rounded: a disk) defocused."""
+    kind_from_blur_shape: bool = True
+    """Apply the two rules above (off: those images stay of unknown kind)."""
     kind_in_between: bool = True
     """An image neither sharp nor clearly blurred (sharpness between the two thresholds) whose directional loss names
     motion is motion-blurred (else unknown): it pays for that model alone instead of both."""
@@ -161,6 +178,13 @@ class DegradationEstimate:
     """How much more fine detail the image lost along one orientation than along the others, from the image alone:
     the geometric mean of its tiles' coherence of detail loss and of its spectrum's anisotropy of fall-off (camera
     shake: large; defocus and sharp views: small); None for a flat image."""
+    detail_spread: Optional[float] = None
+    """How unevenly fine detail is spread over the image's tiles, relative to the set's sharp images (1: as unevenly;
+    below: every tile lost detail, as under a shake or a lens far from focus everywhere); None when unmeasured or
+    the set has no sharp image."""
+    edge_rise: Optional[float] = None
+    """10-90 % rise over width of the image's blurred step edges (a disk, i.e. defocus: about 0.8-1.1; a shake that
+    dwells at one place and moves briefly: more); None with too few blurred step edges."""
 
     def evidence(self) -> dict:
         """The numbers as a JSON-ready dict (rounded)."""
@@ -295,6 +319,27 @@ def _kind_from_direction(directional: float, region: float, cfg: EstimateConfig)
     return "unknown"  # NaN included
 
 
+def _kind_from_blur_shape(spread: float, rise: float, cfg: EstimateConfig) -> tuple[str, float]:
+    """(motion / defocus / unknown, confidence) from the detail spread over tiles (relative to the set's sharp
+    images) and the edge rise ratio (NaN: no evidence)."""
+    if spread > cfg.focused_detail_spread:  # some tiles kept their detail: a lens focused on one depth
+        return "defocus", _confidence(spread, cfg.focused_detail_spread, 1.5)
+    if not math.isfinite(rise):
+        return "unknown", 0.0
+    label = "motion" if rise > cfg.motion_edge_rise else "defocus"
+    return label, _confidence(rise, cfg.motion_edge_rise, 1.5)
+
+
+def _relative_detail_spread(feats: Sequence[ImageFeatures], sharp_idx: list[int]) -> np.ndarray:
+    """[n] each image's tile detail spread over the median of the set's sharp images' (NaN without any)."""
+    spread = np.array([f.tile_detail_spread for f in feats])
+    base = spread[sharp_idx] if sharp_idx else np.zeros(0)
+    base = base[np.isfinite(base)]
+    if not len(base) or float(np.median(base)) <= 0:
+        return np.full(len(feats), np.nan)
+    return spread / float(np.median(base))
+
+
 def _grid_factor(feats: Sequence[ImageFeatures], ref: np.ndarray, cfg: EstimateConfig) -> list[tuple[int, float]]:
     """(factor snapped to MIXRES_GROUPS, score) per image; factor 1 without a grid.
 
@@ -351,6 +396,8 @@ def estimate_from_features(
     direction_ok = noise < cfg.max_content_anisotropy
     isotropy, detail_spread = _detail_evidence(feats, ref, sharp_idx)
     directional = np.array([_directional_loss(f) for f in feats])
+    tile_spread = _relative_detail_spread(feats, sharp_idx)
+    rise = np.array([f.edge_rise_ratio for f in feats])
     detail_ok = detail_spread <= cfg.max_detail_spread
 
     def kind_of(i: int) -> tuple[str, float]:
@@ -371,6 +418,14 @@ def estimate_from_features(
         if label != "unknown":
             threshold = cfg.motion_direction if label == "motion" else cfg.defocus_direction
             return label, _confidence(directional[i], threshold, 2.0)
+        if cfg.kind_from_blur_shape:
+            label, conf = _kind_from_blur_shape(tile_spread[i], rise[i], cfg)
+            # a directional loss that a region in focus contradicted: the shape must side with one of the two (a
+            # rounded edge profile alone does not outvote the direction)
+            focused = tile_spread[i] > cfg.focused_detail_spread
+            if directional[i] > cfg.motion_direction and label == "defocus" and not focused:
+                return "unknown", 0.0
+            return label, conf
         return "unknown", 0.0
 
     out = []
@@ -416,6 +471,8 @@ def estimate_from_features(
                 isotropy=None if math.isnan(isotropy[i]) else float(isotropy[i]),
                 sharpest_region=None if math.isnan(region_width[i]) else float(region_width[i]),
                 directional_loss=None if math.isnan(directional[i]) else float(directional[i]),
+                detail_spread=None if math.isnan(tile_spread[i]) else float(tile_spread[i]),
+                edge_rise=None if math.isnan(rise[i]) else float(rise[i]),
             )
         )
     return out

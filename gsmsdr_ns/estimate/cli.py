@@ -72,9 +72,10 @@ class EstimateCLI:
     @staticmethod
     def _print(entries: Dict[str, Dict[str, Any]]) -> None:
         width = max((len(n) for n in entries), default=5)
+        numbers = [Column(head, min_width=4) for head in ("conf", "sharp", "aniso", "iso", "dir", "focus", "sprd",
+                                                           "rise", "f")]  # fmt: skip
         table = Table(Column("image", no_wrap=True, min_width=width), Column("label", no_wrap=True, min_width=7),
-                      "confi- dence", "sharp- ness", "aniso- tropy", "iso- tropy", "direc- tional", "sharpest region",
-                      "mixres factor")  # fmt: skip
+                      *numbers, padding=(0, 1), collapse_padding=True, pad_edge=False)  # fmt: skip
 
         def number(value: Any) -> str:
             return "-" if value is None else f"{value:.2f}"
@@ -84,8 +85,12 @@ class EstimateCLI:
             factor = ev["mixres_factor"]
             table.add_row(name, ev["label"], f"{ev['confidence']:.2f}", f"{ev['sharpness']:.2f}",
                           f"{ev['anisotropy']:.2f}", number(ev.get("isotropy")), number(ev.get("directional_loss")),
-                          number(ev.get("sharpest_region")), "?" if factor is None else str(factor))  # fmt: skip
+                          number(ev.get("sharpest_region")), number(ev.get("detail_spread")),
+                          number(ev.get("edge_rise")), "?" if factor is None else str(factor))  # fmt: skip
         CONSOLE.print(table)
+        CONSOLE.print("conf: confidence; sharp: sharpness relative to the set; kind of blur: aniso (orientation "
+                      "spread), iso (detail isotropy), dir (directional loss), focus (sharpest region's edge width), "
+                      "sprd (detail spread over tiles), rise (edge rise ratio); f: mixres factor")  # fmt: skip
 
 
 def parse(argv: Sequence[str] | None = None) -> EstimateCLI:

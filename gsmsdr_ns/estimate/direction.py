@@ -1,5 +1,6 @@
-"""Along which orientations an image lost fine detail: the detail tensor (fine-scale gradient tensor whitened by
-the coarse-scale one), its coherence over tiles, and the anisotropy of the spectrum's fall-off.
+"""Along which orientations, and where, an image lost fine detail: the detail tensor (fine-scale gradient tensor
+whitened by the coarse-scale one), its coherence and its spread over tiles, and the anisotropy of the spectrum's
+fall-off.
 
 Pure functions on grey images ``gray: [H, W]`` (float, values in [0, 1]).
 """
@@ -84,6 +85,41 @@ def _tile_detail_coherence(grads: Tensor, tiles: int = 4) -> float:
     return abs(sum(vectors) / len(vectors)) if len(vectors) >= 4 else float("nan")
 
 
+def tile_detail_spread(gray: Tensor, sigma: float = 1.0, tiles: int = 10) -> float:
+    """How unevenly the fine detail of gray [H, W] is spread over its tiles (no reference needed).
+
+    Per tile of a ``tiles`` x ``tiles`` grid with structure, the mean log eigenvalue of its detail tensor
+    (:func:`detail_tensor` of the tile at scale `sigma`): how much fine detail the tile holds for its coarse
+    structure. -> the spread (90th minus 10th percentile) over the tiles; NaN with fewer than 4 such tiles.
+    Content alone spreads it (fine texture here, smooth shading there); a blur of the whole view (a shake, a lens
+    far from focus everywhere) narrows it, as every tile loses its detail, while a lens focused on one depth keeps
+    the tiles at that depth detailed and blurs the others: the spread stays as wide as a sharp view's, or widens.
+    """
+    return _tile_detail_spread(scale_gradients(gray, sigma), tiles)
+
+
+def _tile_detail_spread(grads: Tensor, tiles: int = 10) -> float:
+    """:func:`tile_detail_spread` from ``grads`` [2, 2, h, w] of :func:`scale_gradients`."""
+    h, w = grads.shape[-2:]
+    cells = [grads[..., i * h // tiles : (i + 1) * h // tiles, j * w // tiles : (j + 1) * w // tiles]
+             for i in range(tiles) for j in range(tiles)]  # fmt: skip
+    strength = np.array([np.trace(_structure_tensor(cell[1])) for cell in cells])  # coarse gradient energy
+    detail = []
+    for cell, s in zip(cells, strength):
+        if s < 1e-2 * strength.max():  # a flat tile has no detail to lose
+            continue
+        tensor = _detail_tensor(cell)
+        if not np.all(np.isfinite(tensor)):
+            continue
+        values = np.linalg.eigvalsh(tensor)
+        if values[0] <= 0:
+            continue
+        detail.append(0.5 * math.log(values[0] * values[1]))
+    if len(detail) < 4:
+        return float("nan")
+    return float(np.percentile(detail, 90) - np.percentile(detail, 10))
+
+
 SPECTRUM_BANDS = ((0.04, 0.1), (0.1, 0.2), (0.2, 0.3), (0.3, 0.45))
 """Radial frequency bands (cycles per px) of :func:`spectral_anisotropy`: the first is the reference, the others
 are where a blur of a few px takes its share."""
@@ -119,4 +155,11 @@ def spectral_anisotropy(gray: Tensor, bins: int = 12) -> float:
     return float(max(math.hypot(*(fit @ (band - logs[0]))[1:]) for band in logs[1:]))
 
 
-__all__ = ["inverse_sqrt", "detail_tensor", "tile_detail_coherence", "SPECTRUM_BANDS", "spectral_anisotropy"]
+__all__ = [
+    "inverse_sqrt",
+    "detail_tensor",
+    "tile_detail_coherence",
+    "tile_detail_spread",
+    "SPECTRUM_BANDS",
+    "spectral_anisotropy",
+]

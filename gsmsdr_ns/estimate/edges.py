@@ -61,11 +61,19 @@ def step_edges(
     for a sharp step, the width of the blur's line spread function when blurred (edges blurred much wider than
     `reach` px are not flat at the ends and do not count).
     """
+    return _step_profiles(gray, reach, top_fraction, sigma)[:3]
+
+
+def _step_profiles(
+    gray: Tensor, reach: int, top_fraction: float, sigma: float
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`step_edges` -> (x [m], y [m], width [m], extent [m]); extent: how many px of the profile lie between
+    10 % and 90 % of its rise."""
     x = gray.to(torch.float32)
     H, W = x.shape
     margin = reach + 1  # every profile stays inside the image
     if H <= 2 * margin or W <= 2 * margin:
-        return torch.zeros(0), torch.zeros(0), torch.zeros(0)
+        return torch.zeros(0), torch.zeros(0), torch.zeros(0), torch.zeros(0)
     g = sobel_gradient(gaussian_smooth(x, sigma))[:, margin:-margin, margin:-margin]  # [2, H - 2 margin, W - 2 margin]
     mag = torch.hypot(g[0], g[1]).flatten()
     n = min(max(16, int(top_fraction * mag.numel())), mag.numel())
@@ -84,7 +92,28 @@ def step_edges(
     rise, peak = slope.sum(1), slope.max(1).values
     ends = torch.maximum(slope[:, :2].abs().amax(1), slope[:, -2:].abs().amax(1))
     step = (rise > 0) & (rise >= 0.8 * slope.abs().sum(1)) & (ends < 0.2 * peak)
-    return xs[step], ys[step], rise[step] / peak[step]
+    up = slope[step].clamp(min=0)
+    share = torch.cumsum(up, dim=1) / up.sum(1, keepdim=True).clamp(min=1e-12)  # share of the rise so far
+    extent = ((share < 0.9).sum(1) - (share < 0.1).sum(1)).to(torch.float32)
+    return xs[step], ys[step], rise[step] / peak[step], extent
+
+
+def edge_rise_ratio(
+    gray: Tensor, min_width: float = 2.0, min_edges: int = 8, reach: int = 8, top_fraction: float = 0.08
+) -> float:
+    """The shape of the blur across gray [H, W]'s blurred step edges: median, over the isolated step edges
+    (:func:`step_edges`, here within +-`reach` px among the top `top_fraction` gradients) wider than `min_width`
+    px, of the px between 10 % and 90 % of the rise over the edge's width (rise / steepest slope).
+
+    A rounded or flat-topped line spread (a disk: defocus; a steady sweep) gives about 0.8-1.1; a peaked one with
+    a long tail, as a shake that dwells at one place and moves briefly leaves, gives more (a Laplace-shaped spread
+    about 1.6). NaN with fewer than `min_edges` such edges (a sharp image has few).
+    """
+    _, _, width, extent = _step_profiles(gray, reach, top_fraction, 1.0)
+    wide = width > min_width
+    if int(wide.sum()) < min_edges:
+        return float("nan")
+    return float(np.median((extent[wide] / width[wide]).numpy()))
 
 
 def edge_width(
@@ -118,4 +147,4 @@ def sharpest_region_width(
     return min(medians) if len(medians) >= 2 else float("nan")
 
 
-__all__ = ["edge_sharpness", "step_edges", "edge_width", "sharpest_region_width"]
+__all__ = ["edge_sharpness", "step_edges", "edge_width", "sharpest_region_width", "edge_rise_ratio"]

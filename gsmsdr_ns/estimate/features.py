@@ -1,6 +1,7 @@
 """Per-image measurements behind the degradation estimate, gathered by :func:`image_features` into
-:class:`ImageFeatures`: sharpness (:mod:`.edges`, Laplacian variance), the orientations that lost detail
-(:mod:`.direction`) and the grid an upsampled image carries (:mod:`.grid`).
+:class:`ImageFeatures`: sharpness and the blur's profile across edges (:mod:`.edges`, Laplacian variance), the
+orientations and the places that lost detail (:mod:`.direction`) and the grid an upsampled image carries
+(:mod:`.grid`).
 
 None of them knows about the other images of a set (the set-relative decisions live in
 :mod:`gsmsdr_ns.estimate.classify`). The measurement functions are re-exported here.
@@ -13,9 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 from torch import Tensor
 
-from .direction import SPECTRUM_BANDS, _detail_tensor, _tile_detail_coherence, detail_tensor, inverse_sqrt
-from .direction import spectral_anisotropy, tile_detail_coherence
-from .edges import _edge_sharpness, _width_quantiles, edge_sharpness, edge_width, sharpest_region_width, step_edges
+from .direction import SPECTRUM_BANDS, _detail_tensor, _tile_detail_coherence, _tile_detail_spread, detail_tensor
+from .direction import inverse_sqrt, spectral_anisotropy, tile_detail_coherence, tile_detail_spread
+from .edges import _edge_sharpness, _width_quantiles, edge_rise_ratio, edge_sharpness, edge_width
+from .edges import sharpest_region_width, step_edges
 from .grid import grid_scores
 from .image_ops import analysis_view, gaussian_smooth, laplacian_variance, scale_gradients, sobel_gradient, to_gray
 
@@ -53,6 +55,12 @@ class ImageFeatures:
     large under camera shake, small for defocus and for sharp views whatever their content; NaN: too flat."""
     spectral_anisotropy: float
     """Largest cos(2 theta) amplitude of the spectrum's fall-off over orientations (:func:`spectral_anisotropy`)."""
+    tile_detail_spread: float
+    """How unevenly fine detail is spread over the image's 10x10 tiles (:func:`tile_detail_spread`): a blur of the
+    whole view narrows it, a lens focused on one depth does not; NaN: too flat."""
+    edge_rise_ratio: float
+    """10-90 % rise over width of the blurred step edges (:func:`edge_rise_ratio`): about 0.8-1.1 for a disk,
+    more for a shake that dwells at one place; NaN with too few blurred step edges."""
     grid_scores: dict[int, float]
     """Per factor f in 2..4: periodicity of the grey image's second (third) differences at the knot spacing of an
     upsampling from 1/f of the size (:func:`grid_scores`); about 1 for images that were not upsampled."""
@@ -84,6 +92,8 @@ def image_features(rgb: np.ndarray | Tensor, coarse_sigma: float = 2.0, max_size
         detail_tensor=_detail_tensor(grads),
         tile_coherence=_tile_detail_coherence(grads),
         spectral_anisotropy=spectral_anisotropy(gray),
+        tile_detail_spread=_tile_detail_spread(scale_gradients(gray, 1.0)),
+        edge_rise_ratio=edge_rise_ratio(gray),
         grid_scores=grid_scores(full),
     )
 
@@ -102,6 +112,8 @@ __all__ = [
     "sharpest_region_width",
     "detail_tensor",
     "tile_detail_coherence",
+    "tile_detail_spread",
+    "edge_rise_ratio",
     "spectral_anisotropy",
     "SPECTRUM_BANDS",
     "inverse_sqrt",
