@@ -99,24 +99,33 @@ def tile_detail_spread(gray: Tensor, sigma: float = 1.0, tiles: int = 10) -> flo
 
 
 def _tile_detail_spread(grads: Tensor, tiles: int = 10) -> float:
-    """:func:`tile_detail_spread` from ``grads`` [2, 2, h, w] of :func:`scale_gradients`."""
+    """:func:`tile_detail_spread` from ``grads`` [2, 2, h, w] of :func:`scale_gradients`.
+
+    A tile's mean log eigenvalue of J_c^-1/2 J_f J_c^-1/2 is half the log of det(J_f) / det(J_c), so the tiles'
+    structure tensors (means of the gradient products over each tile) are all it needs.
+    """
     h, w = grads.shape[-2:]
-    cells = [grads[..., i * h // tiles : (i + 1) * h // tiles, j * w // tiles : (j + 1) * w // tiles]
-             for i in range(tiles) for j in range(tiles)]  # fmt: skip
-    strength = np.array([np.trace(_structure_tensor(cell[1])) for cell in cells])  # coarse gradient energy
-    detail = []
-    for cell, s in zip(cells, strength):
-        if s < 1e-2 * strength.max():  # a flat tile has no detail to lose
-            continue
-        tensor = _detail_tensor(cell)
-        if not np.all(np.isfinite(tensor)):
-            continue
-        values = np.linalg.eigvalsh(tensor)
-        if values[0] <= 0:
-            continue
-        detail.append(0.5 * math.log(values[0] * values[1]))
-    if len(detail) < 4:
+    g = grads.to(torch.float64)
+    products = torch.stack([g[:, 0] * g[:, 0], g[:, 1] * g[:, 1], g[:, 0] * g[:, 1]], dim=1)  # [2, 3 (xx, yy, xy), h, w]
+    rows = [i * h // tiles for i in range(tiles + 1)]
+    cols = [j * w // tiles for j in range(tiles + 1)]
+    bands = torch.stack([products[..., rows[i] : rows[i + 1], :].sum(-2) for i in range(tiles)], dim=-2)
+    sums = torch.stack([bands[..., cols[j] : cols[j + 1]].sum(-1) for j in range(tiles)], dim=-1)  # [2, 3, t, t]
+    heights = torch.tensor(np.diff(rows), dtype=torch.float64)
+    widths = torch.tensor(np.diff(cols), dtype=torch.float64)
+    (fxx, fyy, fxy), (cxx, cyy, cxy) = (sums / torch.outer(heights, widths)).flatten(2).numpy()  # [tiles^2] each
+    strength = cxx + cyy  # coarse gradient energy
+    half_gap = np.hypot((cxx - cyy) / 2, cxy)
+    coarse_max, coarse_min = strength / 2 + half_gap, strength / 2 - half_gap
+    det_fine, det_coarse = fxx * fyy - fxy**2, cxx * cyy - cxy**2
+    usable = (
+        (strength >= 1e-2 * strength.max())  # a flat tile has no detail to lose
+        & (coarse_min > 1e-12 * np.maximum(coarse_max, 1e-300))  # the coarse tensor can be whitened
+        & (det_fine > 0)
+    )
+    if usable.sum() < 4:
         return float("nan")
+    detail = 0.5 * np.log(det_fine[usable] / det_coarse[usable])
     return float(np.percentile(detail, 90) - np.percentile(detail, 10))
 
 
