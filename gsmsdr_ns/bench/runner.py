@@ -64,21 +64,12 @@ def fingerprint(suite: Suite, key: RunKey) -> str:
         "version": RECORD_VERSION,
         "scene": suite.scene(key.scene).fingerprint(),
         "method": {"base": method.base, "blur_field": method.blur_field, "sharp_data": method.sharp_data},
-        "preset": preset_fingerprint(method),
-        "steps": key.steps,
-        "seed": key.seed,
-        "schedule": schedule_settings(suite.schedule_for(key.steps)),
-        "eval_steps": suite.eval_steps(key.steps),
-        "lpips": suite.lpips,
+        **_training_settings(suite, key),
     }
     if suite.align_poses:  # only then, so records of suites without alignment keep their fingerprint
         payload["align_poses"] = True
     if method.degraded_poses:  # only then: the other methods' records keep their fingerprint
         payload["method"]["degraded_poses"] = True
-    if suite.scene(key.scene).trains_on_estimated_records(method):
-        from gsmsdr_ns.estimate.records import estimate_fingerprint
-
-        payload["estimate"] = estimate_fingerprint()  # a real-photo scene trains on the records estimated for it
     return _digest(payload)
 
 
@@ -88,24 +79,32 @@ def training_identity(suite: Suite, key: RunKey) -> str:
     Runs of a suite with equal identities would train the same model on the same data: one trains, the others copy
     its record (e.g. the sharp upper bound of every scene degraded from the same sharp photos, or plain Gaussians
     on a scene whose records say every image is sharp next to that upper bound)."""
-    method = METHODS[key.method]
-    scene = suite.scene(key.scene)
     payload = {
         "version": RECORD_VERSION,
-        "data": scene.data_key(method),
+        "data": suite.scene(key.scene).data_key(METHODS[key.method]),
+        **_training_settings(suite, key),
+        "align_poses": suite.align_poses,
+    }
+    return _digest(payload)
+
+
+def _training_settings(suite: Suite, key: RunKey) -> Dict[str, Any]:
+    """The settings of run ``key`` both keys above share: resolved preset, steps, seed, schedule, evaluation steps,
+    LPIPS, and the estimate's version when the run trains on estimated records."""
+    method = METHODS[key.method]
+    settings = {
         "preset": preset_fingerprint(method),
         "steps": key.steps,
         "seed": key.seed,
         "schedule": schedule_settings(suite.schedule_for(key.steps)),
         "eval_steps": suite.eval_steps(key.steps),
         "lpips": suite.lpips,
-        "align_poses": suite.align_poses,
     }
-    if scene.trains_on_estimated_records(method):
+    if suite.scene(key.scene).trains_on_estimated_records(method):
         from gsmsdr_ns.estimate.records import estimate_fingerprint
 
-        payload["estimate"] = estimate_fingerprint()
-    return _digest(payload)
+        settings["estimate"] = estimate_fingerprint()  # a real-photo scene trains on the records estimated for it
+    return settings
 
 
 def _digest(payload: Dict[str, Any]) -> str:
