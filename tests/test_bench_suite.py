@@ -210,7 +210,7 @@ def test_runs_with_the_same_training_train_once(tmp_path: Path) -> None:
     assert training_identity(suite, RunKey("motion", "sharp", 6, 1)) != training_identity(suite, motion_sharp)
     plan = plan_runs(suite, out)
     assert [k.id for k in plan.todo] == ["motion__plain__6__s0", "motion__sharp__6__s0", "defocus__plain__6__s0"]
-    assert {k: v.id for k, v in plan.same_as.items()} == {defocus_sharp.id: motion_sharp.id}
+    assert {k.id: v.id for k, v in plan.same_as.items()} == {defocus_sharp.id: motion_sharp.id}
 
     outcome = run_suite(suite, out, progress=False, plots=False)
     assert sorted(outcome.trained) == sorted(k.id for k in plan.todo) and outcome.copied == [defocus_sharp.id]

@@ -257,11 +257,9 @@ class RunPlan:
     """Ids of runs with a finished record in ``out/runs``."""
     skipped: Dict[str, str]
     """{id: why} of runs no scene supports."""
-    same_as: Dict[str, RunKey] = field(default_factory=dict)
-    """{id: source} of runs that are not trained because ``source`` (finished, or trained earlier in ``todo``) has
+    same_as: Dict[RunKey, RunKey] = field(default_factory=dict)
+    """{run: source} of runs that are not trained because ``source`` (finished, or trained earlier in ``todo``) has
     the same :func:`training_identity`: they get a copy of its record."""
-    keys: Dict[str, RunKey] = field(default_factory=dict)
-    """Every run of the suite by id."""
 
     @property
     def total(self) -> int:
@@ -275,7 +273,6 @@ def plan_runs(suite: Suite, out: Path) -> RunPlan:
     trained: Dict[str, RunKey] = {}  # training identity -> the run in todo that trains it
     pending: List[RunKey] = []
     for key in suite.runs():
-        plan.keys[key.id] = key
         scene, method = suite.scene(key.scene), METHODS[key.method]
         if not scene.supports(method):
             plan.skipped[key.id] = f"scene {scene.name} has no sharp_path for the sharp upper bound"
@@ -288,7 +285,7 @@ def plan_runs(suite: Suite, out: Path) -> RunPlan:
         identity = training_identity(suite, key)
         source = finished.get(identity) or trained.get(identity)
         if source is not None:
-            plan.same_as[key.id] = source
+            plan.same_as[key] = source
         else:
             trained[identity] = key
             plan.todo.append(key)
@@ -323,7 +320,7 @@ def run_suite(
     machine = machine_info()
 
     plan = plan_runs(suite, out)
-    todo, reused, skipped = plan.todo, list(plan.reused), plan.skipped
+    todo, reused, skipped = plan.todo, plan.reused, plan.skipped
     followers: Dict[str, List[RunKey]] = {}  # a run in todo -> the runs that copy its record once it is trained
     copied: List[str] = []
 
@@ -344,11 +341,11 @@ def run_suite(
     console.print(f"suite [bold]{suite.name}[/bold]: {plan.total} runs ({len(reused)} already finished, "
                   f"{len(todo)} to train, {len(plan.same_as)} sharing another run's training, {len(skipped)} "
                   f"skipped) -> {out}")  # fmt: skip
-    for id_, source in plan.same_as.items():
+    for key, source in plan.same_as.items():
         if source.id in reused:
-            copy_record(plan.keys[id_], source)
+            copy_record(key, source)
         else:
-            followers.setdefault(source.id, []).append(plan.keys[id_])
+            followers.setdefault(source.id, []).append(key)
     trained: List[str] = []
     failed: Dict[str, str] = {}
     outputs: List[Path] = []
@@ -392,13 +389,12 @@ def run_suite(
                     with open(log_path, "a", encoding="utf8") as log_file:
                         log_file.write(traceback.format_exc())
                     failed[key.id] = f"{type(e).__name__}: {e}"
+                    for follower in followers.get(key.id, []):
+                        failed[follower.id] = f"same training as {key.id}, which failed"
                     console.print(f"[red]{key.id} failed after {time.perf_counter() - started:.0f} s: "
                                   f"{type(e).__name__}: {e} (log: {log_path})[/red]")  # fmt: skip
                 finally:
                     bars.remove_task(run_task)
-                for follower in followers.get(key.id, []):
-                    if key.id in failed:
-                        failed[follower.id] = f"same training as {key.id}, which failed"
                 current = f"writing the outputs after {key.id}"
                 bars.advance(suite_task, 1 + len(followers.get(key.id, [])))
                 refresh()

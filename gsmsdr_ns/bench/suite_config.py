@@ -65,9 +65,8 @@ class SceneEntry:
 
         assert self.real is not None
         if method.sharp_data and method.degraded_poses:
-            if degrade_config(self.real).resolved_effects():
-                return self.real, "estimated", "sharp"
-            return self.real, "estimated", "degraded"
+            photos = "sharp" if degrade_config(self.real).resolved_effects() else "degraded"
+            return self.real, "estimated", photos
         real = self.real.sharp_twin() if method.sharp_data else self.real
         return real, self._records(method), "degraded"
 
@@ -97,7 +96,8 @@ class SceneEntry:
             real, records, photos = self._real_folder(method)
             return {**self.fingerprint(), "real": dataclasses.asdict(real), "records": records, "photos": photos}
         path = self.sharp_path if method.sharp_data else self.path
-        return {"path": str(Path(str(path)).resolve())}
+        assert path is not None
+        return {"path": str(Path(path).resolve())}
 
     def configure(self, config) -> None:
         """Scene-specific reader settings on a method's TrainerConfig (a real scene's downscaled copies)."""

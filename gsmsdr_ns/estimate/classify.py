@@ -319,15 +319,18 @@ def _kind_from_direction(directional: float, region: float, cfg: EstimateConfig)
     return "unknown"  # NaN included
 
 
-def _kind_from_blur_shape(spread: float, rise: float, cfg: EstimateConfig) -> tuple[str, float]:
+def _kind_from_blur_shape(spread: float, rise: float, directional: bool, cfg: EstimateConfig) -> tuple[str, float]:
     """(motion / defocus / unknown, confidence) from the detail spread over tiles (relative to the set's sharp
-    images) and the edge rise ratio (NaN: no evidence)."""
+    images) and the edge rise ratio (NaN: no evidence). ``directional``: the image's loss of detail was directional
+    while a region in focus contradicted it; the shape must then side with one of the two, and a rounded edge
+    profile alone does not outvote the direction."""
     if spread > cfg.focused_detail_spread:  # some tiles kept their detail: a lens focused on one depth
         return "defocus", _confidence(spread, cfg.focused_detail_spread, 1.5)
     if not math.isfinite(rise):
         return "unknown", 0.0
-    label = "motion" if rise > cfg.motion_edge_rise else "defocus"
-    return label, _confidence(rise, cfg.motion_edge_rise, 1.5)
+    if rise > cfg.motion_edge_rise:
+        return "motion", _confidence(rise, cfg.motion_edge_rise, 1.5)
+    return ("unknown", 0.0) if directional else ("defocus", _confidence(rise, cfg.motion_edge_rise, 1.5))
 
 
 def _relative_detail_spread(feats: Sequence[ImageFeatures], sharp_idx: list[int]) -> np.ndarray:
@@ -419,13 +422,7 @@ def estimate_from_features(
             threshold = cfg.motion_direction if label == "motion" else cfg.defocus_direction
             return label, _confidence(directional[i], threshold, 2.0)
         if cfg.kind_from_blur_shape:
-            label, conf = _kind_from_blur_shape(tile_spread[i], rise[i], cfg)
-            # a directional loss that a region in focus contradicted: the shape must side with one of the two (a
-            # rounded edge profile alone does not outvote the direction)
-            focused = tile_spread[i] > cfg.focused_detail_spread
-            if directional[i] > cfg.motion_direction and label == "defocus" and not focused:
-                return "unknown", 0.0
-            return label, conf
+            return _kind_from_blur_shape(tile_spread[i], rise[i], directional[i] > cfg.motion_direction, cfg)
         return "unknown", 0.0
 
     out = []
