@@ -210,8 +210,10 @@ def test_scene_records_are_cached_until_an_image_changes(capture, tmp_path):
     assert not (scene / "degradation.json").exists()  # the cache never touches the scene's records
 
 
-SET_RULES_ONLY = EstimateConfig(motion_direction=math.inf, defocus_direction=-math.inf, kind_from_blur_shape=False)
-"""The estimate without the rules that read a blurred image alone (directional loss, region in focus, blur shape)."""
+RULES = EstimateConfig(kind_from="rules")
+"""The hand-set rules name the kind of blur (version 5) instead of the fitted ensemble."""
+SET_RULES_ONLY = replace(RULES, motion_direction=math.inf, defocus_direction=-math.inf, kind_from_blur_shape=False)
+"""The rules without those that read a blurred image alone (directional loss, region in focus, blur shape)."""
 
 
 def test_views_of_different_content_get_their_kind_of_blur_from_the_image_alone():
@@ -227,7 +229,9 @@ def test_views_of_different_content_get_their_kind_of_blur_from_the_image_alone(
     assert [e.label for e in estimates[-2:]] == ["motion", "defocus"]
     assert estimates[-2].directional_loss > 2 * max(e.directional_loss for e in estimates[:-2] + estimates[-1:])
     assert all(e.blurred is True and e.mixres_factor == 1 for e in estimates[-2:])
-    assert all(e.label in ("sharp", "unknown") and e.blurred is not True for e in estimates[:-2])
+    # the views of the softest content fall between sharp and blurred: never called blurred, at most given a kind
+    # with a low confidence (one blur simulated instead of both)
+    assert all(e.blurred is not True and (e.label == "sharp" or e.confidence < 0.5) for e in estimates[:-2])
     for est in estimate_degradations(images, SET_RULES_ONLY)[-2:]:
         assert est.label == "unknown" and est.blurred is True
         entry = entry_from_estimate(est)
@@ -416,7 +420,7 @@ def test_a_view_blurred_in_part_only_is_named_defocus_when_the_set_rules_cannot_
     views = sharp_views()
     images = views[:6] + [_blur_part(v, 3.0) for v in views[6:]]
     # the set rules off, and a low directional loss not enough: only the region in focus can name defocus
-    region_only = EstimateConfig(max_content_anisotropy=-1.0, max_detail_spread=-1.0, defocus_direction=-math.inf)
+    region_only = replace(RULES, max_content_anisotropy=-1.0, max_detail_spread=-1.0, defocus_direction=-math.inf)
     estimates = estimate_degradations(images, region_only)
     assert [e.label for e in estimates[6:]] == ["defocus", "defocus"]
     assert all(e.sharpest_region <= region_only.focused_region_width for e in estimates[6:])
@@ -459,8 +463,8 @@ def test_kinds_the_other_rules_leave_unknown_come_from_the_blur_shape():
     images = views[:4] + [dwelling_shake(views[4], 12, 0.4), dwelling_shake(views[5], 12, 2.0),
                           defocus_by(views[6], 3.0), defocus_by(views[7], 3.5)]  # fmt: skip
     # every earlier rule off: the set rules (no set qualifies), the directional loss and the region in focus
-    shape_only = EstimateConfig(max_content_anisotropy=-1.0, max_detail_spread=-1.0, motion_direction=math.inf,
-                                defocus_direction=-math.inf, focused_region_width=-1.0)  # fmt: skip
+    shape_only = replace(RULES, max_content_anisotropy=-1.0, max_detail_spread=-1.0, motion_direction=math.inf,
+                         defocus_direction=-math.inf, focused_region_width=-1.0)  # fmt: skip
     estimates = estimate_degradations(images, shape_only)
     assert [e.label for e in estimates] == ["sharp"] * 4 + ["motion"] * 2 + ["defocus"] * 2
     assert all(e.edge_rise > shape_only.motion_edge_rise for e in estimates[4:6])

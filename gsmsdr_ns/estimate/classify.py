@@ -11,6 +11,13 @@ image is compared with them.
   image that passes as sharp but whose softest step edges are much wider than those of the set's narrowest-edged
   images is left unknown: a blur of only part of the view (a lens focused on one depth) leaves the strongest
   edges sharp, and so does a view whose content is simply softer.
+* **motion / defocus, by the fitted ensemble** (the default, ``kind_from="model"``): every number the rules below
+  read (and the sharpness) is one input of gradient-boosted trees (:mod:`.kind_model`) fitted on generated scenes
+  and degraded real photos whose records hold the truth (:mod:`.fit_kind_model`). Its probability of motion names
+  the kind of every blurred image and of every image between sharp and blurred, or leaves it unknown near 0.5.
+  Each rule alone sees one trait of the blur; the ensemble weighs them together and names more kinds, with fewer
+  wrong ones, on sets it was not fitted on (docs/results/estimate/results.md). With ``kind_from="rules"`` the
+  rules decide in turn, as in version 5:
 * **motion / defocus**: motion blur is directional, so the edges lose their steepness only across the motion;
   defocus flattens every orientation alike. The spread over orientations of the steepness (relative to the
   reference images, orientation by orientation) separates them, and the spread of the image's step-edge widths
@@ -45,20 +52,22 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Optional, Sequence
+from typing import Literal, Optional, Sequence
 
 import numpy as np
 from torch import Tensor
 
 from .direction import inverse_sqrt
 from .features import MIXRES_GROUPS, ImageFeatures, image_features
+from .kind_model import KIND_FEATURES, feature_matrix, load_kind_model, motion_probability
 
 LABELS = ("sharp", "motion", "defocus", "mixres", "unknown")
-METHOD_VERSION = 5
+METHOD_VERSION = 6
 """Raised whenever the same images and config get other labels (cached estimates and benchmark runs that trained
 on them are then computed again). 2: the detail-tensor second opinion on the kind of blur. 3: the kind of blur
 from the image alone (region in focus, directional loss). 4: the region in focus only after the set rules. 5: the
-blur's shape (detail spread over tiles, edge rise) names the kind the other rules leave unknown."""
+blur's shape (detail spread over tiles, edge rise) names the kind the other rules leave unknown. 6: a fitted
+ensemble over all that evidence names the kind (``kind_from="model"``)."""
 
 
 @dataclass
@@ -127,9 +136,18 @@ class EstimateConfig:
     dwells and moves) is motion-blurred, at most this (rounded: a disk) defocused."""
     kind_from_blur_shape: bool = True
     """Apply the two rules above (off: those images stay of unknown kind)."""
+    kind_from: Literal["model", "rules"] = "model"
+    """What names the kind of a blurred image: "model", the fitted ensemble over the evidence of all the rules
+    (:mod:`.kind_model`); "rules", the rules above in turn (version 5)."""
+    kind_model: str = ""
+    """The ensemble's JSON file ("": the one shipped with the package)."""
+    kind_probability: float = 0.65
+    """The ensemble names a kind when its probability is at least this; otherwise the kind stays unknown."""
     kind_in_between: bool = True
-    """An image neither sharp nor clearly blurred (sharpness between the two thresholds) whose directional loss names
-    motion is motion-blurred (else unknown): it pays for that model alone instead of both."""
+    """An image neither sharp nor clearly blurred (sharpness between the two thresholds) gets the kind of blur the
+    ensemble names (with ``kind_from="rules"``: motion when its directional loss names motion), else unknown: it
+    pays for that model alone instead of both. Sharp views of soft content land here too, and are then simulated
+    with one blur instead of both."""
     max_size: int = 1024
     """Blur is judged on a copy whose longer side is at most this many px (0: full resolution)."""
     coarse_sigma: float = 2.0
@@ -185,6 +203,9 @@ class DegradationEstimate:
     edge_rise: Optional[float] = None
     """10-90 % rise over width of the image's blurred step edges (a disk, i.e. defocus: about 0.8-1.1; a shake that
     dwells at one place and moves briefly: more); None with too few blurred step edges."""
+    motion_probability: Optional[float] = None
+    """The fitted ensemble's probability that a blurred image is motion- rather than defocus-blurred; None for
+    images it did not judge (sharp, mixres, a set too small, or ``kind_from="rules"``)."""
 
     def evidence(self) -> dict:
         """The numbers as a JSON-ready dict (rounded)."""
@@ -402,9 +423,34 @@ def estimate_from_features(
     tile_spread = _relative_detail_spread(feats, sharp_idx)
     rise = np.array([f.edge_rise_ratio for f in feats])
     detail_ok = detail_spread <= cfg.max_detail_spread
+    p_motion = np.full(n, np.nan)
+    if cfg.kind_from == "model":
+        evidence = {"anisotropy": aniso, "width_spread": width_spread, "isotropy": isotropy,
+                    "sharpest_region": region_width, "directional_loss": directional, "detail_spread": tile_spread,
+                    "edge_rise": rise, "tile_coherence": np.array([f.tile_coherence for f in feats]),
+                    "spectral_anisotropy": np.array([f.spectral_anisotropy for f in feats]), "sharpness": sharp,
+                    "soft_width": soft_width, "edge_sharpness": edge_rel, "laplacian_variance": lap_rel}  # fmt: skip
+        model = load_kind_model(cfg.kind_model)
+        unknown = sorted(set(model.features) - set(evidence))
+        if unknown:
+            raise ValueError(f"kind-of-blur model {cfg.kind_model or 'built-in'} reads {unknown}, which the estimate "
+                             f"does not measure (it measures {', '.join(KIND_FEATURES)}); refit it")  # fmt: skip
+        rows = [{k: float(v[i]) for k, v in evidence.items()} for i in range(n)]
+        p_motion = motion_probability(model, feature_matrix(rows, model.features))
+
+    def kind_from_model(i: int) -> tuple[str, float]:
+        """(motion / defocus / unknown, confidence) of blurred image i from the ensemble's probability."""
+        p = float(p_motion[i])
+        label = "motion" if p >= cfg.kind_probability else "defocus" if p <= 1.0 - cfg.kind_probability else "unknown"
+        if label == "unknown":
+            return label, 0.0
+        return label, float(min(1.0, (max(p, 1.0 - p) - cfg.kind_probability) / max(1.0 - cfg.kind_probability, 1e-6)))
 
     def kind_of(i: int) -> tuple[str, float]:
-        """(motion / defocus / unknown, confidence of the kind) of blurred image i, the rules in turn."""
+        """(motion / defocus / unknown, confidence of the kind) of blurred image i: the ensemble, or the rules in
+        turn."""
+        if cfg.kind_from == "model":
+            return kind_from_model(i)
         if direction_ok:
             label = "motion" if aniso[i] >= cfg.anisotropy_threshold else "defocus"
             limit = cfg.max_motion_width_spread if label == "motion" else cfg.max_defocus_width_spread
@@ -426,6 +472,7 @@ def estimate_from_features(
         return "unknown", 0.0
 
     out = []
+    judged: set[int] = set()  # images whose kind of blur was asked for
     for i in range(n):
         factor, gscore = grid[i]
         blurred: Optional[bool]
@@ -441,7 +488,11 @@ def estimate_from_features(
         elif sharp[i] >= cfg.blurred_threshold:
             # neither sharp nor clearly blurred: the kind of blur may still show (and saves simulating both)
             label, blurred, conf = "unknown", None, 0.0
-            if cfg.kind_in_between and directional[i] > cfg.motion_direction:
+            if cfg.kind_in_between and cfg.kind_from == "model":
+                judged.add(i)
+                label, conf_kind = kind_from_model(i)
+                conf = min(conf_kind, _confidence(sharp[i], cfg.sharp_threshold, 2.0)) if label != "unknown" else 0.0
+            elif cfg.kind_in_between and directional[i] > cfg.motion_direction:
                 # only a directional loss of detail: a region in focus or a low directional loss is what a sharp
                 # view of soft content shows as well
                 label = "motion"
@@ -449,6 +500,7 @@ def estimate_from_features(
                            _confidence(sharp[i], cfg.sharp_threshold, 2.0))  # fmt: skip
         else:
             blurred = True
+            judged.add(i)
             label, conf_kind = kind_of(i)
             conf = min(_confidence(sharp[i], cfg.blurred_threshold, 2.0), conf_kind)
         out.append(
@@ -470,6 +522,7 @@ def estimate_from_features(
                 directional_loss=None if math.isnan(directional[i]) else float(directional[i]),
                 detail_spread=None if math.isnan(tile_spread[i]) else float(tile_spread[i]),
                 edge_rise=None if math.isnan(rise[i]) else float(rise[i]),
+                motion_probability=float(p_motion[i]) if i in judged and math.isfinite(p_motion[i]) else None,
             )
         )
     return out

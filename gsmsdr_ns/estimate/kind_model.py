@@ -1,0 +1,156 @@
+"""The kind of blur (motion or defocus) of a blurred image, from its evidence, by a fitted tree ensemble.
+
+The hand-set rules of :mod:`.classify` each read one or two numbers; together the numbers separate the kinds much
+better than any rule chain we set by hand (the ensemble is fitted by :mod:`gsmsdr_ns.estimate.fit_kind_model` on
+scenes whose records hold the truth; results in docs/results/estimate/results.md). The ensemble is stored as JSON
+(``kind_model.json`` beside this module) and evaluated here with numpy: boosted regression trees whose summed
+leaf values are the log-odds of motion.
+
+Pure functions over arrays; the only state is the loaded model (an immutable value).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+KIND_FEATURES = (
+    "anisotropy",
+    "width_spread",
+    "isotropy",
+    "sharpest_region",
+    "directional_loss",
+    "detail_spread",
+    "edge_rise",
+    "tile_coherence",
+    "spectral_anisotropy",
+    "sharpness",
+    "soft_width",
+    "edge_sharpness",
+    "laplacian_variance",
+)
+"""The evidence the ensemble reads, in column order (names of :class:`~.classify.DegradationEstimate` fields and,
+for ``tile_coherence`` / ``spectral_anisotropy``, of :class:`~.features.ImageFeatures` fields)."""
+
+MISSING = -1.0
+"""The value of a missing number (NaN, None) in the feature matrix: every feature is >= 0 when measured, so the
+trees can route "not measured" on its own."""
+
+BUILTIN_MODEL = Path(__file__).with_name("kind_model.json")
+"""The ensemble shipped with the package."""
+
+
+@dataclass(frozen=True)
+class TreeEnsemble:
+    """Boosted binary regression trees. Node arrays per tree, all [nodes]: ``left`` / ``right`` child index (-1 at
+    a leaf), ``feature`` column, ``threshold`` (go left when value <= threshold), ``value`` (leaf output)."""
+
+    features: tuple
+    """Column names (:data:`KIND_FEATURES` when fitted by this project)."""
+    base: float
+    """Log-odds before any tree."""
+    learning_rate: float
+    """Factor on every tree's output."""
+    trees: tuple
+    """One (left, right, feature, threshold, value) tuple of arrays per tree."""
+    digest: str
+    """sha256 of the JSON it was read from (cache keys)."""
+
+
+def ensemble_to_json(features: Sequence[str], base: float, learning_rate: float, trees: Sequence[Mapping]) -> str:
+    """The JSON text of an ensemble; each tree a mapping of the node lists left, right, feature, threshold, value."""
+    doc = {
+        "kind": "gradient-boosted trees, log-odds of motion",
+        "features": list(features),
+        "missing": MISSING,
+        "base": float(base),
+        "learning_rate": float(learning_rate),
+        "trees": [{k: [round(float(v), 7) if k in ("threshold", "value") else int(v) for v in t[k]]
+                   for k in ("left", "right", "feature", "threshold", "value")} for t in trees],  # fmt: skip
+    }
+    return json.dumps(doc, separators=(",", ":"))
+
+
+def parse_ensemble(text: str, source: str = "<text>") -> TreeEnsemble:
+    """A :class:`TreeEnsemble` from :func:`ensemble_to_json` text; ValueError naming ``source`` when malformed."""
+    try:
+        doc = json.loads(text)
+        features = tuple(doc["features"])
+        trees = []
+        for t in doc["trees"]:
+            arrays = (np.asarray(t["left"], np.int64), np.asarray(t["right"], np.int64),
+                      np.asarray(t["feature"], np.int64), np.asarray(t["threshold"], np.float64),
+                      np.asarray(t["value"], np.float64))  # fmt: skip
+            n = len(arrays[0])
+            if n == 0 or any(len(a) != n for a in arrays) or arrays[2].max() >= len(features):
+                raise ValueError("node arrays of unequal length or a feature index out of range")
+            trees.append(arrays)
+        model = TreeEnsemble(features, float(doc["base"]), float(doc["learning_rate"]), tuple(trees),
+                             hashlib.sha256(text.encode("utf8")).hexdigest())  # fmt: skip
+    except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{source} is not a kind-of-blur model written by gsmsdr_ns.estimate.fit_kind_model "
+                         f"({exc}); refit it or remove the path to use the built-in one") from exc  # fmt: skip
+    return model
+
+
+@functools.lru_cache(maxsize=4)
+def load_kind_model(path: str = "") -> TreeEnsemble:
+    """The ensemble at ``path`` ("" : the built-in one), read once per path."""
+    file = Path(path) if path else BUILTIN_MODEL
+    if not file.is_file():
+        raise FileNotFoundError(f"kind-of-blur model {file} not found (EstimateConfig.kind_model); use '' for the "
+                                "built-in one or write one with python -m gsmsdr_ns.estimate.fit_kind_model")  # fmt: skip
+    return parse_ensemble(file.read_text(encoding="utf8"), str(file))
+
+
+def feature_matrix(rows: Sequence[Mapping[str, float | None]], features: Sequence[str] = KIND_FEATURES) -> np.ndarray:
+    """[n, len(features)] from one mapping of evidence per image; None / NaN / inf become :data:`MISSING`."""
+    out = np.full((len(rows), len(features)), MISSING)
+    for i, row in enumerate(rows):
+        for j, name in enumerate(features):
+            v = row.get(name)
+            if v is not None and math.isfinite(float(v)):
+                out[i, j] = float(v)
+    return out
+
+
+def log_odds(model: TreeEnsemble, X: np.ndarray) -> np.ndarray:
+    """Log-odds of motion per row of X [n, features] -> [n]."""
+    total = np.full(len(X), model.base)
+    rows = np.arange(len(X))
+    for left, right, feature, threshold, value in model.trees:
+        node = np.zeros(len(X), np.int64)
+        while True:
+            inner = left[node] >= 0
+            if not inner.any():
+                break
+            go_left = X[rows, feature[node]] <= threshold[node]
+            node = np.where(inner, np.where(go_left, left[node], right[node]), node)
+        total += model.learning_rate * value[node]
+    return total
+
+
+def motion_probability(model: TreeEnsemble, X: np.ndarray) -> np.ndarray:
+    """Probability of motion (against defocus) per row of X [n, features] -> [n]."""
+    return 1.0 / (1.0 + np.exp(-log_odds(model, X)))
+
+
+__all__ = [
+    "KIND_FEATURES",
+    "MISSING",
+    "BUILTIN_MODEL",
+    "TreeEnsemble",
+    "ensemble_to_json",
+    "parse_ensemble",
+    "load_kind_model",
+    "feature_matrix",
+    "log_odds",
+    "motion_probability",
+]
