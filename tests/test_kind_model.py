@@ -125,3 +125,18 @@ def test_the_fit_refuses_sets_without_both_kinds(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match="empty holds no scene"):
         collect_rows((tmp_path / "empty",))
+
+
+def test_the_fit_trains_on_exactly_what_the_estimate_reads(tmp_path):
+    from gsmsdr_ns.estimate.fit_kind_model import scene_rows
+    from gsmsdr_ns.estimate.records import read_folder
+
+    scene = _evaluation_set(tmp_path / "A", 0) / "synth-motion"
+    rows, motion = scene_rows(scene)
+    assert len(rows) == 4 and all(motion)
+    names, images = read_folder(scene / "images")
+    estimates = estimate_degradations(images)
+    judged = [e.motion_probability for e in estimates if e.motion_probability is not None]
+    assert len(judged) == 4
+    # the same numbers through the built-in ensemble give the estimate's own probabilities
+    assert np.allclose(motion_probability(load_kind_model(""), feature_matrix(rows)), judged)
