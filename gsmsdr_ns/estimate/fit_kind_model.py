@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Tuple
@@ -24,6 +22,7 @@ from typing import List, Tuple
 import numpy as np
 import tyro
 
+from ..io.atomic import write_text_atomic
 from ..io.images import read_image
 from .classify import EstimateConfig, estimate_from_features
 from .evaluate import truth_of
@@ -168,19 +167,6 @@ def cross_validation_tables(rows: TrainingRows, p: np.ndarray, probability: floa
     return "\n".join(lines)
 
 
-def write_atomic(path: Path, text: str) -> None:
-    """Write text to path through a temporary file in the same folder."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 @dataclass
 class FitKindModelCLI:
     """Fit the degradation estimate's kind-of-blur ensemble on evaluation sets with true records."""
@@ -204,7 +190,7 @@ class FitKindModelCLI:
         if self.cross_validate:
             p = cross_validated_probability(rows, self.settings)
             print(cross_validation_tables(rows, p, self.probability, self.sweep))
-        write_atomic(self.out, fit_ensemble(rows.X, rows.motion, self.settings))
+        write_text_atomic(self.out, fit_ensemble(rows.X, rows.motion, self.settings))
         print(f"wrote {self.out}")
         return [str(self.out)]
 
