@@ -91,8 +91,15 @@ def _evaluation_set(root: Path, offset: int) -> Path:
     return root
 
 
-def test_the_fit_command_writes_an_ensemble_the_estimate_reads(tmp_path, capsys):
-    sets = (_evaluation_set(tmp_path / "A", 0), _evaluation_set(tmp_path / "B", 1))
+@pytest.fixture(scope="module")
+def evaluation_sets(tmp_path_factory) -> tuple[Path, Path]:
+    """Two evaluation sets (see :func:`_evaluation_set`), written once for this module's tests (read only)."""
+    root = tmp_path_factory.mktemp("sets")
+    return _evaluation_set(root / "A", 0), _evaluation_set(root / "B", 1)
+
+
+def test_the_fit_command_writes_an_ensemble_the_estimate_reads(evaluation_sets, tmp_path, capsys):
+    sets = evaluation_sets
     rows = collect_rows(sets)
     assert len(rows.motion) == 16 and rows.motion.sum() == 8 and set(rows.group) == {"A", "B"}
     out = tmp_path / "fitted" / "kind_model.json"
@@ -116,9 +123,9 @@ def test_the_fit_command_writes_an_ensemble_the_estimate_reads(tmp_path, capsys)
     assert all(e.label == "unknown" and e.blurred is True for e in unsure[4:])
 
 
-def test_the_fit_refuses_sets_without_both_kinds(tmp_path):
-    root = _evaluation_set(tmp_path / "A", 0)
-    shutil.rmtree(root / "synth-defocus")
+def test_the_fit_refuses_sets_without_both_kinds(evaluation_sets, tmp_path):
+    root = tmp_path / "A"
+    shutil.copytree(evaluation_sets[0] / "synth-motion", root / "synth-motion")  # shaken views only
     with pytest.raises(ValueError, match="one kind of blur"):
         FitKindModelCLI(work=(root,), out=tmp_path / "m.json", cross_validate=False).main()
     assert not (tmp_path / "m.json").exists()
@@ -127,11 +134,11 @@ def test_the_fit_refuses_sets_without_both_kinds(tmp_path):
         collect_rows((tmp_path / "empty",))
 
 
-def test_the_fit_trains_on_exactly_what_the_estimate_reads(tmp_path):
+def test_the_fit_trains_on_exactly_what_the_estimate_reads(evaluation_sets):
     from gsmsdr_ns.estimate.fit_kind_model import scene_rows
     from gsmsdr_ns.estimate.records import read_folder
 
-    scene = _evaluation_set(tmp_path / "A", 0) / "synth-motion"
+    scene = evaluation_sets[0] / "synth-motion"
     rows, motion = scene_rows(scene)
     assert len(rows) == 4 and all(motion)
     names, images = read_folder(scene / "images")
