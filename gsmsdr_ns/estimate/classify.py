@@ -491,7 +491,7 @@ def estimate_from_features(
             if cfg.kind_in_between and cfg.kind_from == "model":
                 judged.add(i)
                 label, conf_kind = kind_from_model(i)
-                conf = min(conf_kind, _confidence(sharp[i], cfg.sharp_threshold, 2.0)) if label != "unknown" else 0.0
+                conf = min(conf_kind, _confidence(sharp[i], cfg.sharp_threshold, 2.0))  # 0 when the kind is unknown
             elif cfg.kind_in_between and directional[i] > cfg.motion_direction:
                 # only a directional loss of detail: a region in focus or a low directional loss is what a sharp
                 # view of soft content shows as well

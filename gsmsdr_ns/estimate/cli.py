@@ -85,8 +85,9 @@ class EstimateCLI:
             factor = ev["mixres_factor"]
             table.add_row(name, ev["label"], f"{ev['confidence']:.2f}", f"{ev['sharpness']:.2f}",
                           number(ev.get("motion_probability")), f"{ev['anisotropy']:.2f}", number(ev.get("isotropy")),
-                          number(ev.get("directional_loss")), number(ev.get("sharpest_region")), number(ev.get("detail_spread")),
-                          number(ev.get("edge_rise")), "?" if factor is None else str(factor))  # fmt: skip
+                          number(ev.get("directional_loss")), number(ev.get("sharpest_region")),
+                          number(ev.get("detail_spread")), number(ev.get("edge_rise")),
+                          "?" if factor is None else str(factor))  # fmt: skip
         CONSOLE.print(table)
         CONSOLE.print("conf: confidence; shp: sharpness relative to the set; kind of blur: p(m) (the fitted "
                       "ensemble's probability of motion, which names it) and its evidence anis (orientation "
