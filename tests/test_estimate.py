@@ -185,12 +185,17 @@ def test_images_folder_is_printed_not_written(capture, tmp_path, capsys):
     entries = parse(["--images", str(scene / "images")]).main()
     assert entries["view_20.png"]["estimate"]["label"] == "motion"
     assert sorted(p.name for p in scene.iterdir()) == ["images"]
-    # each row shows the evidence of the kind rules: orientation spread, detail isotropy, directional loss
-    row = next(line for line in capsys.readouterr().out.splitlines() if "view_21" in line)
+    # each row shows the ensembles' probabilities and evidence: detail isotropy, directional loss
+    printed = capsys.readouterr().out.splitlines()
+    assert "p(d)" in printed[0] and "p(m)" in printed[0]
     evidence = entries["view_21.png"]["estimate"]
-    cells = [c.strip() for c in row.split("│")]
-    for key in ("anisotropy", "isotropy", "directional_loss"):
+    cells = [c.strip() for c in next(line for line in printed if "view_21" in line).split("│")]
+    for key in ("motion_probability", "isotropy", "directional_loss"):
         assert f"{evidence[key]:.2f}" in cells
+    sharp = entries["view_00.png"]["estimate"]
+    assert sharp["label"] == "sharp" and sharp["motion_probability"] is None
+    row = next(line for line in printed if "view_00" in line)
+    assert f"{sharp['degraded_probability']:.2f}" in [c.strip() for c in row.split("│")]
 
 
 def test_scene_records_are_cached_until_an_image_changes(capture, tmp_path):

@@ -11,9 +11,13 @@ image is compared with them.
   image that passes as sharp but whose softest step edges are much wider than those of the set's narrowest-edged
   images is left unknown: a blur of only part of the view (a lens focused on one depth) leaves the strongest
   edges sharp, and so does a view whose content is simply softer.
+* **sharp, confirmed by a fitted ensemble** (the default, ``sharp_from="model"``): the thresholds miss mild blur
+  (a lens focused on one depth, on small images), so every image they call sharp is also judged by gradient-boosted
+  trees over all the evidence below (:mod:`.ensemble`, fitted by :mod:`.fit_ensembles` on generated scenes and
+  degraded real photos whose records hold the truth). An image it calls degraded is treated as one between sharp
+  and blurred: the kind ensemble names its blur, or it stays unknown.
 * **motion / defocus, by the fitted ensemble** (the default, ``kind_from="model"``): every number the rules below
-  read (and the sharpness) is one input of gradient-boosted trees (:mod:`.kind_model`) fitted on generated scenes
-  and degraded real photos whose records hold the truth (:mod:`.fit_kind_model`). Its probability of motion names
+  read (and the sharpness) is one input of another ensemble, fitted the same way. Its probability of motion names
   the kind of every blurred image and of every image between sharp and blurred, or leaves it unknown near 0.5.
   Each rule alone sees one trait of the blur; the ensemble weighs them together and names more kinds, with fewer
   wrong ones, on sets it was not fitted on (docs/results/estimate/results.md). With ``kind_from="rules"`` the
@@ -59,15 +63,16 @@ from torch import Tensor
 
 from .direction import inverse_sqrt
 from .features import MIXRES_GROUPS, ImageFeatures, image_features
-from .kind_model import KIND_FEATURES, feature_matrix, load_kind_model, motion_probability
+from .ensemble import KIND_FEATURES, TreeEnsemble, evidence_matrix, load_degraded_model, load_kind_model, probability
 
 LABELS = ("sharp", "motion", "defocus", "mixres", "unknown")
-METHOD_VERSION = 6
+METHOD_VERSION = 7
 """Raised whenever the same images and config get other labels (cached estimates and benchmark runs that trained
 on them are then computed again). 2: the detail-tensor second opinion on the kind of blur. 3: the kind of blur
 from the image alone (region in focus, directional loss). 4: the region in focus only after the set rules. 5: the
 blur's shape (detail spread over tiles, edge rise) names the kind the other rules leave unknown. 6: a fitted
-ensemble over all that evidence names the kind (``kind_from="model"``)."""
+ensemble over all that evidence names the kind (``kind_from="model"``). 7: a second ensemble flags degraded images
+among those the thresholds call sharp (``sharp_from="model"``)."""
 
 
 @dataclass
@@ -138,11 +143,19 @@ class EstimateConfig:
     """Apply the two rules above (off: those images stay of unknown kind)."""
     kind_from: Literal["model", "rules"] = "model"
     """What names the kind of a blurred image: "model", the fitted ensemble over the evidence of all the rules
-    (:mod:`.kind_model`); "rules", the rules above in turn (version 5)."""
+    (:mod:`.ensemble`); "rules", the rules above in turn (version 5)."""
     kind_model: str = ""
     """The ensemble's JSON file ("": the one shipped with the package)."""
     kind_probability: float = 0.65
     """The ensemble names a kind when its probability is at least this; otherwise the kind stays unknown."""
+    sharp_from: Literal["model", "rules"] = "model"
+    """What confirms an image the thresholds above call sharp: "model", the fitted degraded-image ensemble over the
+    same evidence (:mod:`.ensemble`; an image it flags is treated as one between sharp and blurred); "rules", the
+    thresholds alone (version 6)."""
+    degraded_model: str = ""
+    """The degraded-image ensemble's JSON file ("": the one shipped with the package)."""
+    degraded_probability: float = 0.7
+    """The ensemble flags an image the thresholds call sharp when its probability of degraded is at least this."""
     kind_in_between: bool = True
     """An image neither sharp nor clearly blurred (sharpness between the two thresholds) gets the kind of blur the
     ensemble names (with ``kind_from="rules"``: motion when its directional loss names motion), else unknown: it
@@ -206,6 +219,9 @@ class DegradationEstimate:
     motion_probability: Optional[float] = None
     """The fitted ensemble's probability that a blurred image is motion- rather than defocus-blurred; None for
     images it did not judge (sharp, mixres, a set too small, or ``kind_from="rules"``)."""
+    degraded_probability: Optional[float] = None
+    """The degraded-image ensemble's probability that an image the thresholds call sharp is degraded; None for the
+    images it was not asked about (not sharp by the thresholds, or ``sharp_from="rules"``)."""
 
     def evidence(self) -> dict:
         """The numbers as a JSON-ready dict (rounded)."""
@@ -389,10 +405,59 @@ def _grid_factor(feats: Sequence[ImageFeatures], ref: np.ndarray, cfg: EstimateC
     return out
 
 
-def estimate_from_features(
-    feats: Sequence[ImageFeatures], config: Optional[EstimateConfig] = None
-) -> list[DegradationEstimate]:
-    """Decide the labels of a set from its measurements (:func:`image_features` per image). -> one per image."""
+@dataclass
+class SetEvidence:
+    """Every number the decisions read, for a set of n images: arrays [n] (NaN: not measured) and the set's own
+    facts. The names of the 13 arrays the ensembles read are :data:`~.ensemble.KIND_FEATURES`."""
+
+    sharpness: np.ndarray
+    """Combined sharpness relative to the reference images."""
+    edge_sharpness: np.ndarray
+    """Edge steepness above a flat ramp relative to the reference images."""
+    laplacian_variance: np.ndarray
+    """Variance of the Laplacian relative to the reference images."""
+    anisotropy: np.ndarray
+    """Orientation spread of the relative edge steepness."""
+    soft_width: np.ndarray
+    """Softest step edges' width relative to the narrowest-edged images."""
+    width_spread: np.ndarray
+    """Spread of the step-edge widths relative to those images'."""
+    sharpest_region: np.ndarray
+    """Median step-edge width of the sharpest region relative to those images."""
+    isotropy: np.ndarray
+    """Detail isotropy relative to the reference images' detail tensor."""
+    directional_loss: np.ndarray
+    """Directional loss of detail, from the image alone."""
+    detail_spread: np.ndarray
+    """Tile detail spread relative to the set's sharp images."""
+    edge_rise: np.ndarray
+    """10-90 % rise over width of the blurred step edges."""
+    tile_coherence: np.ndarray
+    """Tiles' coherence of detail loss (one part of the directional loss)."""
+    spectral_anisotropy: np.ndarray
+    """Anisotropy of the spectrum's fall-off (the other part)."""
+    grid: list
+    """(mixres factor snapped to the groups, periodicity score) per image."""
+    reference: np.ndarray
+    """Indices of the reference images."""
+    sharp_idx: list
+    """Indices of the images sharp by the thresholds and not soft-edged."""
+    soft: np.ndarray
+    """[n] bool: softest step edges much wider than the narrowest-edged images'."""
+    trusted_reference: bool
+    """The reference images are sharp enough (and the set large enough) to call any image sharp."""
+    direction_ok: bool
+    """The sharp images' orientation spread is small enough for the orientation rule."""
+    detail_ok: bool
+    """The sharp images' detail tensors agree closely enough for the isotropy rule."""
+
+    def columns(self) -> dict:
+        """The arrays the ensembles may read, by name."""
+        return {name: getattr(self, name) for name in KIND_FEATURES}
+
+
+def set_evidence(feats: Sequence[ImageFeatures], config: Optional[EstimateConfig] = None) -> SetEvidence:
+    """Measure a set against itself (:func:`image_features` per image) -> its :class:`SetEvidence`."""
     cfg = config or EstimateConfig()
     n = len(feats)
     if n == 0:
@@ -404,39 +469,62 @@ def estimate_from_features(
     edge_rel = (edge - 1.0) / max(ref_edge - 1.0, 1e-6)
     lap_rel = lap / max(_reference(lap, ref), 1e-12)
     sharp = np.array([_combined(e, v) for e, v in zip(edge_rel, lap_rel)])
-    ref_sharp = _reference(sharp, ref)
-    sharp = sharp / max(ref_sharp, 1e-12)
+    sharp = sharp / max(_reference(sharp, ref), 1e-12)
     soft_width, width_spread, region_width = _width_evidence(feats, cfg)
     with np.errstate(invalid="ignore"):
         soft = soft_width > cfg.soft_width_ratio  # NaN: no evidence either way
     by_angle = np.stack([f.edge_ratio_by_angle for f in feats])  # [n, bins]
     ref_angle = np.nanmedian(by_angle[ref], axis=0)
-    aniso = np.array([_orientation_spread(b, ref_angle) for b in by_angle])
-    grid = _grid_factor(feats, ref, cfg)
-    ref_set = set(ref.tolist())
-    trusted_ref = ref_edge >= cfg.min_reference_edge_ratio and n >= cfg.min_set_size
     sharp_idx = [i for i in range(n) if sharp[i] >= cfg.sharp_threshold and not soft[i]]
-    noise = _content_anisotropy(by_angle, sharp_idx)
-    direction_ok = noise < cfg.max_content_anisotropy
     isotropy, detail_spread = _detail_evidence(feats, ref, sharp_idx)
-    directional = np.array([_directional_loss(f) for f in feats])
-    tile_spread = _relative_detail_spread(feats, sharp_idx)
-    rise = np.array([f.edge_rise_ratio for f in feats])
-    detail_ok = detail_spread <= cfg.max_detail_spread
+    return SetEvidence(
+        sharpness=sharp,
+        edge_sharpness=edge_rel,
+        laplacian_variance=lap_rel,
+        anisotropy=np.array([_orientation_spread(b, ref_angle) for b in by_angle]),
+        soft_width=soft_width,
+        width_spread=width_spread,
+        sharpest_region=region_width,
+        isotropy=isotropy,
+        directional_loss=np.array([_directional_loss(f) for f in feats]),
+        detail_spread=_relative_detail_spread(feats, sharp_idx),
+        edge_rise=np.array([f.edge_rise_ratio for f in feats]),
+        tile_coherence=np.array([f.tile_coherence for f in feats]),
+        spectral_anisotropy=np.array([f.spectral_anisotropy for f in feats]),
+        grid=_grid_factor(feats, ref, cfg),
+        reference=ref,
+        sharp_idx=sharp_idx,
+        soft=soft,
+        trusted_reference=bool(ref_edge >= cfg.min_reference_edge_ratio and n >= cfg.min_set_size),
+        direction_ok=bool(_content_anisotropy(by_angle, sharp_idx) < cfg.max_content_anisotropy),
+        detail_ok=bool(detail_spread <= cfg.max_detail_spread),
+    )
+
+
+def ensemble_probability(ev: SetEvidence, model: TreeEnsemble, which: str) -> np.ndarray:
+    """[n] the ensemble's probability for every image of the set; ValueError when it reads a number the estimate
+    does not measure (``which`` names the model in that message)."""
+    unknown = sorted(set(model.features) - set(KIND_FEATURES))
+    if unknown:
+        raise ValueError(f"{which} reads {unknown}, which the estimate does not measure (it measures "
+                         f"{', '.join(KIND_FEATURES)}); refit it")  # fmt: skip
+    return probability(model, evidence_matrix(ev.columns(), model.features))
+
+
+def decide(ev: SetEvidence, config: Optional[EstimateConfig] = None) -> list[DegradationEstimate]:
+    """Label every image of a set from its evidence -> one :class:`DegradationEstimate` per image."""
+    cfg = config or EstimateConfig()
+    n = len(ev.sharpness)
+    sharp, aniso, width_spread, isotropy = ev.sharpness, ev.anisotropy, ev.width_spread, ev.isotropy
+    directional, region_width = ev.directional_loss, ev.sharpest_region
     p_motion = np.full(n, np.nan)
     if cfg.kind_from == "model":
-        evidence = {"anisotropy": aniso, "width_spread": width_spread, "isotropy": isotropy,
-                    "sharpest_region": region_width, "directional_loss": directional, "detail_spread": tile_spread,
-                    "edge_rise": rise, "tile_coherence": np.array([f.tile_coherence for f in feats]),
-                    "spectral_anisotropy": np.array([f.spectral_anisotropy for f in feats]), "sharpness": sharp,
-                    "soft_width": soft_width, "edge_sharpness": edge_rel, "laplacian_variance": lap_rel}  # fmt: skip
-        model = load_kind_model(cfg.kind_model)
-        unknown = sorted(set(model.features) - set(evidence))
-        if unknown:
-            raise ValueError(f"kind-of-blur model {cfg.kind_model or 'built-in'} reads {unknown}, which the estimate "
-                             f"does not measure (it measures {', '.join(KIND_FEATURES)}); refit it")  # fmt: skip
-        rows = [{k: float(v[i]) for k, v in evidence.items()} for i in range(n)]
-        p_motion = motion_probability(model, feature_matrix(rows, model.features))
+        p_motion = ensemble_probability(ev, load_kind_model(cfg.kind_model),
+                                        f"kind-of-blur model {cfg.kind_model or 'built-in'}")  # fmt: skip
+    p_degraded = np.full(n, np.nan)
+    if cfg.sharp_from == "model":
+        p_degraded = ensemble_probability(ev, load_degraded_model(cfg.degraded_model),
+                                          f"degraded-image model {cfg.degraded_model or 'built-in'}")  # fmt: skip
 
     def kind_from_model(i: int) -> tuple[str, float]:
         """(motion / defocus / unknown, confidence) of blurred image i from the ensemble's probability."""
@@ -451,30 +539,44 @@ def estimate_from_features(
         turn."""
         if cfg.kind_from == "model":
             return kind_from_model(i)
-        if direction_ok:
+        if ev.direction_ok:
             label = "motion" if aniso[i] >= cfg.anisotropy_threshold else "defocus"
             limit = cfg.max_motion_width_spread if label == "motion" else cfg.max_defocus_width_spread
             if not width_spread[i] > limit:  # the edge widths must not contradict that kind (NaN: no evidence)
                 return label, _confidence(aniso[i] + 1e-3, cfg.anisotropy_threshold, 2.0)
-        if detail_ok:
+        if ev.detail_ok:
             label = _kind_from_isotropy(isotropy[i], width_spread[i], cfg)
             if label != "unknown":
                 threshold = cfg.motion_isotropy if label == "motion" else cfg.defocus_isotropy
                 return label, _confidence(isotropy[i], threshold, 1.25)
         # the sharpest region is compared with the narrowest-edged images: only trusted when some images are sharp
-        region = region_width[i] if len(sharp_idx) >= 2 else math.nan
+        region = region_width[i] if len(ev.sharp_idx) >= 2 else math.nan
         label = _kind_from_direction(directional[i], region, cfg)
         if label != "unknown":
             threshold = cfg.motion_direction if label == "motion" else cfg.defocus_direction
             return label, _confidence(directional[i], threshold, 2.0)
         if cfg.kind_from_blur_shape:
-            return _kind_from_blur_shape(tile_spread[i], rise[i], directional[i] > cfg.motion_direction, cfg)
+            return _kind_from_blur_shape(ev.detail_spread[i], ev.edge_rise[i], directional[i] > cfg.motion_direction,
+                                         cfg)  # fmt: skip
+        return "unknown", 0.0
+
+    def kind_in_between(i: int, sure: float) -> tuple[str, float]:
+        """(kind, confidence) of image i that is neither sharp nor clearly blurred; ``sure``: how sure it is not
+        sharp (the confidence is at most that; 0 when the kind is unknown)."""
+        if cfg.kind_in_between and cfg.kind_from == "model":
+            label, conf_kind = kind_from_model(i)
+            return label, min(conf_kind, sure)
+        if cfg.kind_in_between and directional[i] > cfg.motion_direction:
+            # only a directional loss of detail: a region in focus or a low directional loss is what a sharp view
+            # of soft content shows as well
+            return "motion", min(_confidence(directional[i], cfg.motion_direction, 2.0), sure)
         return "unknown", 0.0
 
     out = []
     judged: set[int] = set()  # images whose kind of blur was asked for
+    flag_asked: set[int] = set()  # images the degraded-image ensemble was asked about
     for i in range(n):
-        factor, gscore = grid[i]
+        factor, gscore = ev.grid[i]
         blurred: Optional[bool]
         if factor > 1:
             label, blurred = "mixres", None
@@ -482,22 +584,24 @@ def estimate_from_features(
         elif n < cfg.min_set_size:
             label, blurred, conf = "unknown", None, 0.0
         elif sharp[i] >= cfg.sharp_threshold:
-            trusted = trusted_ref and not soft[i]  # sharpest edges as sharp as the references', softest not
+            trusted = ev.trusted_reference and not ev.soft[i]  # sharpest edges as sharp as the references', softest not
             label, blurred = ("sharp", False) if trusted else ("unknown", None)
             conf = _confidence(sharp[i], cfg.sharp_threshold, 2.0) if trusted else 0.0
+            if trusted and cfg.sharp_from == "model":
+                flag_asked.add(i)
+                if p_degraded[i] >= cfg.degraded_probability:
+                    # sharp by the two thresholds, degraded by all the evidence together (mild defocus, mostly)
+                    if cfg.kind_from == "model":
+                        judged.add(i)
+                    sure = (p_degraded[i] - cfg.degraded_probability) / max(1.0 - cfg.degraded_probability, 1e-6)
+                    blurred = None
+                    label, conf = kind_in_between(i, float(sure))
         elif sharp[i] >= cfg.blurred_threshold:
             # neither sharp nor clearly blurred: the kind of blur may still show (and saves simulating both)
-            label, blurred, conf = "unknown", None, 0.0
-            if cfg.kind_in_between and cfg.kind_from == "model":
+            blurred = None
+            if cfg.kind_from == "model" and cfg.kind_in_between:
                 judged.add(i)
-                label, conf_kind = kind_from_model(i)
-                conf = min(conf_kind, _confidence(sharp[i], cfg.sharp_threshold, 2.0))  # 0 when the kind is unknown
-            elif cfg.kind_in_between and directional[i] > cfg.motion_direction:
-                # only a directional loss of detail: a region in focus or a low directional loss is what a sharp
-                # view of soft content shows as well
-                label = "motion"
-                conf = min(_confidence(directional[i], cfg.motion_direction, 2.0),
-                           _confidence(sharp[i], cfg.sharp_threshold, 2.0))  # fmt: skip
+            label, conf = kind_in_between(i, _confidence(sharp[i], cfg.sharp_threshold, 2.0))
         else:
             blurred = True
             judged.add(i)
@@ -508,24 +612,37 @@ def estimate_from_features(
                 label=label,
                 confidence=round(float(conf), 4),
                 sharpness=float(sharp[i]),
-                edge_sharpness=float(edge_rel[i]),
-                laplacian_variance=float(lap_rel[i]),
+                edge_sharpness=float(ev.edge_sharpness[i]),
+                laplacian_variance=float(ev.laplacian_variance[i]),
                 anisotropy=float(aniso[i]),
                 mixres_factor=factor if (factor > 1 or blurred is not None) else (1 if label == "sharp" else None),
                 grid_score=float(gscore),
                 blurred=blurred,
-                reference=i in ref_set,
-                soft_width=None if math.isnan(soft_width[i]) else float(soft_width[i]),
-                width_spread=None if math.isnan(width_spread[i]) else float(width_spread[i]),
-                isotropy=None if math.isnan(isotropy[i]) else float(isotropy[i]),
-                sharpest_region=None if math.isnan(region_width[i]) else float(region_width[i]),
-                directional_loss=None if math.isnan(directional[i]) else float(directional[i]),
-                detail_spread=None if math.isnan(tile_spread[i]) else float(tile_spread[i]),
-                edge_rise=None if math.isnan(rise[i]) else float(rise[i]),
-                motion_probability=float(p_motion[i]) if i in judged and math.isfinite(p_motion[i]) else None,
+                reference=i in set(ev.reference.tolist()),
+                soft_width=_number(ev.soft_width[i]),
+                width_spread=_number(width_spread[i]),
+                isotropy=_number(isotropy[i]),
+                sharpest_region=_number(region_width[i]),
+                directional_loss=_number(directional[i]),
+                detail_spread=_number(ev.detail_spread[i]),
+                edge_rise=_number(ev.edge_rise[i]),
+                motion_probability=_number(p_motion[i]) if i in judged else None,
+                degraded_probability=_number(p_degraded[i]) if i in flag_asked else None,
             )
         )
     return out
+
+
+def _number(value: float) -> Optional[float]:
+    """A measured number as a float; None when it is not (NaN, inf)."""
+    return float(value) if math.isfinite(value) else None
+
+
+def estimate_from_features(
+    feats: Sequence[ImageFeatures], config: Optional[EstimateConfig] = None
+) -> list[DegradationEstimate]:
+    """Decide the labels of a set from its measurements (:func:`image_features` per image). -> one per image."""
+    return decide(set_evidence(feats, config), config)
 
 
 def estimate_degradations(
@@ -548,4 +665,8 @@ __all__ = [
     "DegradationEstimate",
     "estimate_degradations",
     "estimate_from_features",
+    "SetEvidence",
+    "set_evidence",
+    "decide",
+    "ensemble_probability",
 ]

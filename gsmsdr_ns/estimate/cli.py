@@ -72,7 +72,7 @@ class EstimateCLI:
     @staticmethod
     def _print(entries: Dict[str, Dict[str, Any]]) -> None:
         width = max((len(n) for n in entries), default=5)
-        numbers = [Column(head, min_width=4) for head in ("conf", "shp", "p(m)", "anis", "iso", "dir", "foc", "sprd",
+        numbers = [Column(head, min_width=4) for head in ("conf", "shp", "p(d)", "p(m)", "iso", "dir", "foc", "sprd",
                                                            "rise", "f")]  # fmt: skip
         table = Table(Column("image", no_wrap=True, min_width=width), Column("label", no_wrap=True, min_width=7),
                       *numbers, padding=(0, 1), collapse_padding=True, pad_edge=False, show_edge=False)  # fmt: skip
@@ -84,15 +84,17 @@ class EstimateCLI:
             ev = entry["estimate"]
             factor = ev["mixres_factor"]
             table.add_row(name, ev["label"], f"{ev['confidence']:.2f}", f"{ev['sharpness']:.2f}",
-                          number(ev.get("motion_probability")), f"{ev['anisotropy']:.2f}", number(ev.get("isotropy")),
+                          number(ev.get("degraded_probability")), number(ev.get("motion_probability")),
+                          number(ev.get("isotropy")),
                           number(ev.get("directional_loss")), number(ev.get("sharpest_region")),
                           number(ev.get("detail_spread")), number(ev.get("edge_rise")),
                           "?" if factor is None else str(factor))  # fmt: skip
         CONSOLE.print(table)
-        CONSOLE.print("conf: confidence; shp: sharpness relative to the set; kind of blur: p(m) (the fitted "
-                      "ensemble's probability of motion, which names it) and its evidence anis (orientation "
-                      "spread), iso (detail isotropy), dir (directional loss), foc (sharpest region's edge width), "
-                      "sprd (detail spread over tiles), rise (edge rise ratio); f: mixres factor")  # fmt: skip
+        CONSOLE.print("conf: confidence; shp: sharpness relative to the set; p(d): the fitted ensemble's "
+                      "probability that an image sharp by its sharpness is degraded; kind of blur: p(m) (the fitted "
+                      "ensemble's probability of motion, which names it) and its evidence iso (detail isotropy), "
+                      "dir (directional loss), foc (sharpest region's edge width), sprd (detail spread over tiles), "
+                      "rise (edge rise ratio); f: mixres factor")  # fmt: skip
 
 
 def parse(argv: Sequence[str] | None = None) -> EstimateCLI:

@@ -26,7 +26,7 @@ from ..io.atomic import write_json_atomic
 from ..io.errors import InputError
 from ..io.images import list_images, read_image
 from .classify import METHOD_VERSION, DegradationEstimate, EstimateConfig, estimate_degradations
-from .kind_model import load_kind_model
+from .ensemble import load_degraded_model, load_kind_model
 
 ESTIMATED = "estimated"
 """Value of an entry's ``"source"`` key that marks it as estimated (not a true record)."""
@@ -112,14 +112,16 @@ def merge_entries(
 
 
 def estimate_fingerprint(config: Optional[EstimateConfig] = None) -> Dict[str, Any]:
-    """What an estimate depends on besides the images: the config, the method's version and, when the fitted
-    ensemble names the kinds of blur, its file's digest (JSON-ready)."""
+    """What an estimate depends on besides the images: the config, the method's version and the digests of the
+    fitted ensembles it reads (JSON-ready)."""
     from dataclasses import asdict
 
     cfg = config or EstimateConfig()
     out = {**asdict(cfg), "method_version": METHOD_VERSION}
     if cfg.kind_from == "model":
         out["kind_model_digest"] = load_kind_model(cfg.kind_model).digest
+    if cfg.sharp_from == "model":
+        out["degraded_model_digest"] = load_degraded_model(cfg.degraded_model).digest
     return out
 
 

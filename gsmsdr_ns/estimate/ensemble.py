@@ -1,12 +1,13 @@
-"""The kind of blur (motion or defocus) of a blurred image, from its evidence, by a fitted tree ensemble.
+"""Fitted tree ensembles over an image's evidence: is a sharp-looking image degraded, and is a blurred one
+motion- or defocus-blurred.
 
-The hand-set rules of :mod:`.classify` each read one or two numbers; together the numbers separate the kinds much
-better than any rule chain we set by hand (the ensemble is fitted by :mod:`gsmsdr_ns.estimate.fit_kind_model` on
-scenes whose records hold the truth; results in docs/results/estimate/results.md). The ensemble is stored as JSON
-(``kind_model.json`` beside this module) and evaluated here with numpy: boosted regression trees whose summed
-leaf values are the log-odds of motion.
+The hand-set rules of :mod:`.classify` each read one or two numbers; together the numbers decide much better than
+any rule chain we set by hand. Two ensembles are fitted by :mod:`gsmsdr_ns.estimate.fit_ensembles` on scenes whose
+records hold the truth (results in docs/results/estimate/results.md) and stored as JSON beside this module:
+``kind_model.json`` (log-odds of motion against defocus) and ``degraded_model.json`` (log-odds that an image the
+rules call sharp is degraded). Both are boosted regression trees evaluated here with numpy.
 
-Pure functions over arrays; the only state is the loaded model (an immutable value).
+Pure functions over arrays; the only state is the loaded models (immutable values).
 """
 
 from __future__ import annotations
@@ -36,15 +37,16 @@ KIND_FEATURES = (
     "edge_sharpness",
     "laplacian_variance",
 )
-"""The evidence the ensemble reads, in column order (names of :class:`~.classify.DegradationEstimate` fields and,
-for ``tile_coherence`` / ``spectral_anisotropy``, of :class:`~.features.ImageFeatures` fields)."""
+"""The evidence the ensembles read, in column order: the names of :class:`~.classify.SetEvidence`'s arrays."""
 
 MISSING = -1.0
 """The value of a missing number (NaN, None) in the feature matrix: every feature is >= 0 when measured, so the
 trees can route "not measured" on its own."""
 
-BUILTIN_MODEL = Path(__file__).with_name("kind_model.json")
-"""The ensemble shipped with the package."""
+BUILTIN_KIND_MODEL = Path(__file__).with_name("kind_model.json")
+"""The kind-of-blur ensemble shipped with the package (log-odds of motion)."""
+BUILTIN_DEGRADED_MODEL = Path(__file__).with_name("degraded_model.json")
+"""The ensemble shipped with the package that flags images the rules call sharp (log-odds of degraded)."""
 
 
 @dataclass(frozen=True)
@@ -64,10 +66,13 @@ class TreeEnsemble:
     """sha256 of the JSON it was read from (cache keys)."""
 
 
-def ensemble_to_json(features: Sequence[str], base: float, learning_rate: float, trees: Sequence[Mapping]) -> str:
-    """The JSON text of an ensemble; each tree a mapping of the node lists left, right, feature, threshold, value."""
+def ensemble_to_json(
+    features: Sequence[str], base: float, learning_rate: float, trees: Sequence[Mapping], target: str
+) -> str:
+    """The JSON text of an ensemble; each tree a mapping of the node lists left, right, feature, threshold, value;
+    ``target``: what its log-odds are of (for the reader)."""
     doc = {
-        "kind": "gradient-boosted trees, log-odds of motion",
+        "kind": f"gradient-boosted trees, log-odds of {target}",
         "features": list(features),
         "missing": MISSING,
         "base": float(base),
@@ -95,34 +100,42 @@ def parse_ensemble(text: str, source: str = "<text>") -> TreeEnsemble:
         model = TreeEnsemble(features, float(doc["base"]), float(doc["learning_rate"]), tuple(trees),
                              hashlib.sha256(text.encode("utf8")).hexdigest())  # fmt: skip
     except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{source} is not a kind-of-blur model written by gsmsdr_ns.estimate.fit_kind_model "
+        raise ValueError(f"{source} is not an ensemble written by gsmsdr_ns.estimate.fit_ensembles "
                          f"({exc}); refit it or remove the path to use the built-in one") from exc  # fmt: skip
     return model
 
 
-@functools.lru_cache(maxsize=4)
-def load_kind_model(path: str = "") -> TreeEnsemble:
-    """The ensemble at ``path`` ("" : the built-in one), read once per path."""
-    file = Path(path) if path else BUILTIN_MODEL
+@functools.lru_cache(maxsize=8)
+def _load(path: str, builtin: Path, what: str) -> TreeEnsemble:
+    file = Path(path) if path else builtin
     if not file.is_file():
-        raise FileNotFoundError(f"kind-of-blur model {file} not found (EstimateConfig.kind_model); use '' for the "
-                                "built-in one or write one with python -m gsmsdr_ns.estimate.fit_kind_model")  # fmt: skip
+        raise FileNotFoundError(f"{what} {file} not found; use '' for the built-in one or write one with "
+                                "python -m gsmsdr_ns.estimate.fit_ensembles")  # fmt: skip
     return parse_ensemble(file.read_text(encoding="utf8"), str(file))
 
 
-def feature_matrix(rows: Sequence[Mapping[str, float | None]], features: Sequence[str] = KIND_FEATURES) -> np.ndarray:
-    """[n, len(features)] from one mapping of evidence per image; None / NaN / inf become :data:`MISSING`."""
-    out = np.full((len(rows), len(features)), MISSING)
-    for i, row in enumerate(rows):
-        for j, name in enumerate(features):
-            v = row.get(name)
-            if v is not None and math.isfinite(float(v)):
-                out[i, j] = float(v)
-    return out
+def load_kind_model(path: str = "") -> TreeEnsemble:
+    """The kind-of-blur ensemble at ``path`` ("": the built-in one), read once per path."""
+    return _load(path, BUILTIN_KIND_MODEL, "kind-of-blur model (EstimateConfig.kind_model)")
+
+
+def load_degraded_model(path: str = "") -> TreeEnsemble:
+    """The degraded-image ensemble at ``path`` ("": the built-in one), read once per path."""
+    return _load(path, BUILTIN_DEGRADED_MODEL, "degraded-image model (EstimateConfig.degraded_model)")
+
+
+def evidence_matrix(columns: Mapping[str, np.ndarray], features: Sequence[str] = KIND_FEATURES) -> np.ndarray:
+    """[n, len(features)] from one array [n] per evidence name; NaN / inf become :data:`MISSING`. KeyError naming
+    the features ``columns`` lacks."""
+    missing = [f for f in features if f not in columns]
+    if missing:
+        raise KeyError(f"no evidence named {missing} (measured: {', '.join(columns)})")
+    X = np.stack([np.asarray(columns[f], np.float64) for f in features], axis=1)
+    return np.where(np.isfinite(X), X, MISSING)
 
 
 def log_odds(model: TreeEnsemble, X: np.ndarray) -> np.ndarray:
-    """Log-odds of motion per row of X [n, features] -> [n]."""
+    """Log-odds per row of X [n, features] -> [n]."""
     total = np.full(len(X), model.base)
     rows = np.arange(len(X))
     for left, right, feature, threshold, value in model.trees:
@@ -137,20 +150,22 @@ def log_odds(model: TreeEnsemble, X: np.ndarray) -> np.ndarray:
     return total
 
 
-def motion_probability(model: TreeEnsemble, X: np.ndarray) -> np.ndarray:
-    """Probability of motion (against defocus) per row of X [n, features] -> [n]."""
+def probability(model: TreeEnsemble, X: np.ndarray) -> np.ndarray:
+    """The ensemble's probability per row of X [n, features] -> [n]."""
     return 1.0 / (1.0 + np.exp(-log_odds(model, X)))
 
 
 __all__ = [
     "KIND_FEATURES",
     "MISSING",
-    "BUILTIN_MODEL",
+    "BUILTIN_KIND_MODEL",
+    "BUILTIN_DEGRADED_MODEL",
     "TreeEnsemble",
     "ensemble_to_json",
     "parse_ensemble",
     "load_kind_model",
-    "feature_matrix",
+    "load_degraded_model",
+    "evidence_matrix",
     "log_odds",
-    "motion_probability",
+    "probability",
 ]

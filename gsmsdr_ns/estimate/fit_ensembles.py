@@ -1,0 +1,268 @@
+"""Fit the estimate's two ensembles (:mod:`.ensemble`) on scenes whose records hold the truth, and cross-validate them.
+
+    python -m gsmsdr_ns.estimate.fit_ensembles --work W/A W/B ... [--kind-out K.json] [--degraded-out D.json]
+
+Each ``--work`` folder is one evaluation set as :mod:`.evaluate` writes it (scenes with ``images/`` and a
+``degradation.json`` of true records). Per scene, the estimate's evidence (:class:`~.classify.SetEvidence`) and its
+labels by the hand-set rules alone (``kind_from="rules"``, ``sharp_from="rules"``) are computed; one row per image.
+
+* **kind of blur**: the images the rules do not call sharp or mixres whose truth is motion or defocus alone;
+  target: motion.
+* **degraded**: the images the rules call sharp whose truth is sharp, motion or defocus; target: degraded.
+
+Gradient-boosted trees (scikit-learn) are fitted on all rows of each and written as JSON; before that, each set is
+scored by the ensembles fitted on the other sets (leave one set out): per set at the estimate's probability
+thresholds, and over all sets at several thresholds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import List, Tuple
+
+import numpy as np
+import tyro
+
+from ..io.atomic import write_text_atomic
+from ..io.images import read_image
+from .classify import EstimateConfig, decide, set_evidence
+from .ensemble import (
+    BUILTIN_DEGRADED_MODEL,
+    BUILTIN_KIND_MODEL,
+    KIND_FEATURES,
+    ensemble_to_json,
+    evidence_matrix,
+    log_odds,
+    parse_ensemble,
+    probability,
+)
+from .evaluate import truth_of
+from .features import image_features
+
+RULES = EstimateConfig(kind_from="rules", sharp_from="rules")
+"""The estimate whose labels select the rows: the hand-set rules, without either ensemble."""
+
+
+@dataclass
+class EvidenceRows:
+    """One row per image of some sets: its evidence, the rules' label and the truth."""
+
+    X: np.ndarray
+    """[n, len(KIND_FEATURES)] evidence (:func:`~.ensemble.evidence_matrix`)."""
+    truth: np.ndarray
+    """[n] the records' label (:func:`~.evaluate.truth_of`: sharp, motion, defocus, mixres or a '+' list)."""
+    rules: np.ndarray
+    """[n] the label the rules alone give (:data:`RULES`)."""
+    group: np.ndarray
+    """[n] the set (work folder name) each row comes from."""
+    synthetic: np.ndarray
+    """[n] bool: the row comes from a generated scene (else from degraded photos)."""
+
+    def kind_rows(self) -> np.ndarray:
+        """[n] bool: the rows the kind-of-blur ensemble is fitted on."""
+        return ~np.isin(self.rules, ["sharp", "mixres"]) & np.isin(self.truth, ["motion", "defocus"])
+
+    def degraded_rows(self) -> np.ndarray:
+        """[n] bool: the rows the degraded-image ensemble is fitted on."""
+        return (self.rules == "sharp") & np.isin(self.truth, ["sharp", "motion", "defocus"])
+
+
+def scene_rows(scene: Path) -> tuple[np.ndarray, list[str], list[str]]:
+    """(evidence [n, features], rules' label per image, true label per image) of one scene with true records."""
+    doc = json.loads((scene / "degradation.json").read_text(encoding="utf8"))
+    names = sorted(doc["images"])
+    feats = [image_features(read_image(scene / "images" / n)) for n in names]
+    ev = set_evidence(feats, RULES)
+    labels = [e.label for e in decide(ev, RULES)]
+    return evidence_matrix(ev.columns()), labels, [truth_of(doc["images"][n])[0] for n in names]
+
+
+def collect_rows(work: Tuple[Path, ...]) -> EvidenceRows:
+    """The rows of every scene (a folder with degradation.json) in each work folder."""
+    X, truth, rules, group, synthetic = [], [], [], [], []
+    for folder in work:
+        scenes = sorted(p for p in Path(folder).iterdir() if (p / "degradation.json").is_file())
+        if not scenes:
+            raise FileNotFoundError(f"{folder} holds no scene with a degradation.json (write one with "
+                                    "python -m gsmsdr_ns.estimate.evaluate --work ...)")  # fmt: skip
+        for scene in scenes:
+            x, labels, truths = scene_rows(scene)
+            print(f"{folder}/{scene.name}: {len(labels)} images", flush=True)
+            X.append(x)
+            rules += labels
+            truth += truths
+            group += [Path(folder).name] * len(labels)
+            synthetic += [scene.name.startswith("synth")] * len(labels)
+    return EvidenceRows(np.concatenate(X), np.array(truth), np.array(rules), np.array(group), np.array(synthetic))
+
+
+@dataclass
+class FitSettings:
+    """Gradient boosting settings (scikit-learn's GradientBoostingClassifier)."""
+
+    trees: int = 150
+    """Boosting stages."""
+    depth: int = 3
+    """Depth of each tree."""
+    learning_rate: float = 0.05
+    """Shrinkage of each tree's output."""
+    subsample: float = 0.7
+    """Share of the rows each tree is fitted on."""
+    seed: int = 0
+    """Seed of the row subsampling."""
+
+
+def fit_ensemble(X: np.ndarray, y: np.ndarray, settings: FitSettings, target: str) -> str:
+    """Fit on X [n, features] / y [n] bool and return the ensemble's JSON text (:func:`~.ensemble.ensemble_to_json`;
+    ``target`` names what y is), checked to reproduce scikit-learn's own decision function."""
+    try:
+        from sklearn.ensemble import GradientBoostingClassifier
+    except ImportError as exc:  # pragma: no cover - scikit-learn comes with nerfstudio's dependencies
+        raise ImportError("fitting the estimate's ensembles needs scikit-learn: pip install scikit-learn") from exc
+    if len(set(y.tolist())) < 2:
+        raise ValueError(f"the training rows are all {'' if y.all() else 'not '}{target}: add sets with both")
+    clf = GradientBoostingClassifier(n_estimators=settings.trees, max_depth=settings.depth,
+                                     learning_rate=settings.learning_rate, subsample=settings.subsample,
+                                     random_state=settings.seed).fit(X, y)  # fmt: skip
+    prior = float(np.mean(y))
+    trees = []
+    for stage in clf.estimators_[:, 0]:
+        t = stage.tree_
+        trees.append({"left": t.children_left, "right": t.children_right, "feature": np.maximum(t.feature, 0),
+                      "threshold": t.threshold, "value": t.value[:, 0, 0]})  # fmt: skip
+    text = ensemble_to_json(KIND_FEATURES, np.log(prior / (1.0 - prior)), settings.learning_rate, trees, target)
+    ours = log_odds(parse_ensemble(text), X)
+    theirs = clf.decision_function(X)
+    if not np.allclose(ours, theirs, atol=1e-3):
+        raise RuntimeError(f"the exported ensemble differs from scikit-learn's by up to "
+                           f"{np.abs(ours - theirs).max():.3g} in log-odds; not written")  # fmt: skip
+    return text
+
+
+def cross_validated_probability(X: np.ndarray, y: np.ndarray, group: np.ndarray, settings: FitSettings) -> np.ndarray:
+    """Leave one set out: each row's probability from the ensemble fitted on the other sets' rows -> [n]."""
+    groups = list(dict.fromkeys(group.tolist()))
+    if len(groups) < 2:
+        raise ValueError("cross-validation needs at least two sets")
+    p = np.zeros(len(y))
+    for g in groups:
+        held = group == g
+        p[held] = probability(parse_ensemble(fit_ensemble(X[~held], y[~held], settings, "y")), X[held])
+    return p
+
+
+def _counts(p: np.ndarray, motion: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(right, wrong, unknown) [n] bool of probabilities of motion p [n] against the truth at a threshold."""
+    decided = np.maximum(p, 1.0 - p) >= threshold
+    return decided & ((p >= 0.5) == motion), decided & ((p >= 0.5) != motion), ~decided
+
+
+def kind_tables(rows: EvidenceRows, p: np.ndarray, threshold: float, sweep: Tuple[float, ...]) -> str:
+    """Markdown, kind-of-blur rows and their cross-validated probabilities of motion p: per set and kind of scene,
+    right / wrong / unknown kinds at ``threshold``; then, over all rows, the same at each threshold of ``sweep``."""
+    k = rows.kind_rows()
+    motion, group, synth = rows.truth[k] == "motion", rows.group[k], rows.synthetic[k]
+    right, wrong, unknown = _counts(p, motion, threshold)
+    lines = [f"Kind of blur, leave one set out, probability {threshold}:", "",
+             "| set | scenes | blurred images | right | wrong kind | unknown |",
+             "|---|---|---|---|---|---|"]  # fmt: skip
+    for g in list(dict.fromkeys(group.tolist())) + ["all"]:
+        for synthetic, kind in ((True, "generated"), (False, "photos")):
+            m = (synth == synthetic) & ((group == g) if g != "all" else True)
+            if m.sum():
+                lines.append(f"| {g} | {kind} | {int(m.sum())} | {100 * right[m].mean():.1f} % | {int(wrong[m].sum())} "
+                             f"| {int(unknown[m].sum())} |")  # fmt: skip
+    lines += ["", "Kind of blur, leave one set out, all sets, by threshold (generated / photos):", "",
+              "| probability | right | wrong kind | unknown |", "|---|---|---|---|"]  # fmt: skip
+    for t in sweep:
+        r, w, u = _counts(p, motion, t)
+        lines.append(f"| {t} | {_share(r, synth)} | {_sum(w, synth)} | {_sum(u, synth)} |")
+    return "\n".join(lines)
+
+
+def degraded_tables(rows: EvidenceRows, p: np.ndarray, threshold: float, sweep: Tuple[float, ...]) -> str:
+    """Markdown, degraded-image rows and their cross-validated probabilities of degraded p: per set and kind of
+    scene, the sharp-vs-degraded accuracy of these rows by the rules alone and with the ensemble's flag at
+    ``threshold`` (degraded images caught, sharp ones lost); then, over all rows, the same at each of ``sweep``."""
+    k = rows.degraded_rows()
+    degraded, group, synth = rows.truth[k] != "sharp", rows.group[k], rows.synthetic[k]
+    lines = [f"Images the rules call sharp, leave one set out, probability {threshold}:", "",
+             "| set | scenes | images | degraded | right, rules | right, flagged | caught | sharp lost |",
+             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    flagged = p >= threshold
+    for g in list(dict.fromkeys(group.tolist())) + ["all"]:
+        for synthetic, kind in ((True, "generated"), (False, "photos")):
+            m = (synth == synthetic) & ((group == g) if g != "all" else True)
+            if m.sum():
+                caught, lost = (flagged & degraded)[m].sum(), (flagged & ~degraded)[m].sum()
+                lines.append(f"| {g} | {kind} | {int(m.sum())} | {int(degraded[m].sum())} | "
+                             f"{100 * (~degraded[m]).mean():.1f} % | {100 * (flagged == degraded)[m].mean():.1f} % | "
+                             f"{int(caught)} | {int(lost)} |")  # fmt: skip
+    lines += ["", "Images the rules call sharp, all sets, by threshold (generated / photos):", "",
+              "| probability | right | caught | sharp lost |", "|---|---|---|---|"]  # fmt: skip
+    for t in sweep:
+        f = p >= t
+        lines.append(f"| {t} | {_share(f == degraded, synth)} | {_sum(f & degraded, synth)} | "
+                     f"{_sum(f & ~degraded, synth)} |")  # fmt: skip
+    return "\n".join(lines)
+
+
+def _share(ok: np.ndarray, synth: np.ndarray) -> str:
+    """'generated % / photos %' of a bool array ('-' for a side without rows)."""
+    return " / ".join(f"{100 * ok[m].mean():.1f} %" if m.any() else "-" for m in (synth, ~synth))
+
+
+def _sum(flag: np.ndarray, synth: np.ndarray) -> str:
+    """'generated / photos' counts of a bool array."""
+    return f"{int(flag[synth].sum())} / {int(flag[~synth].sum())}"
+
+
+@dataclass
+class FitEnsemblesCLI:
+    """Fit the degradation estimate's two ensembles on evaluation sets with true records."""
+
+    work: Tuple[Path, ...]
+    """Evaluation sets (folders written by python -m gsmsdr_ns.estimate.evaluate --work ...)."""
+    kind_out: Path = BUILTIN_KIND_MODEL
+    """Where the kind-of-blur ensemble's JSON goes (default: the one the package ships)."""
+    degraded_out: Path = BUILTIN_DEGRADED_MODEL
+    """Where the degraded-image ensemble's JSON goes (default: the one the package ships)."""
+    settings: FitSettings = dataclasses.field(default_factory=FitSettings)
+    """Boosting settings (both ensembles)."""
+    cross_validate: bool = True
+    """Print the leave-one-set-out tables first."""
+    kind_probability: float = EstimateConfig.kind_probability
+    """Probability from which the kind table counts a kind as named (EstimateConfig.kind_probability)."""
+    degraded_probability: float = EstimateConfig.degraded_probability
+    """Probability from which the degraded table counts an image as flagged (EstimateConfig.degraded_probability)."""
+    kind_sweep: Tuple[float, ...] = (0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8)
+    """Thresholds of the kind table's sweep."""
+    degraded_sweep: Tuple[float, ...] = (0.5, 0.6, 0.7, 0.8, 0.9)
+    """Thresholds of the degraded table's sweep."""
+
+    def main(self) -> List[str]:
+        rows = collect_rows(self.work)
+        jobs = []
+        for name, mask, y, target, out, threshold, sweep, tables in (
+            ("kind of blur", rows.kind_rows(), rows.truth == "motion", "motion", self.kind_out,
+             self.kind_probability, self.kind_sweep, kind_tables),
+            ("degraded", rows.degraded_rows(), rows.truth != "sharp", "degraded", self.degraded_out,
+             self.degraded_probability, self.degraded_sweep, degraded_tables),
+        ):  # fmt: skip
+            X, y = rows.X[mask], y[mask]
+            print(f"{name}: {len(y)} rows, {int(y.sum())} {target}")
+            if self.cross_validate:
+                p = cross_validated_probability(X, y, rows.group[mask], self.settings)
+                print(tables(rows, p, threshold, sweep))
+            jobs.append((out, fit_ensemble(X, y, self.settings, target)))
+        for out, text in jobs:  # both fitted before either is written
+            write_text_atomic(out, text)
+            print(f"wrote {out}")
+        return [str(out) for out, _ in jobs]
+
+
+if __name__ == "__main__":
+    tyro.cli(FitEnsemblesCLI).main()

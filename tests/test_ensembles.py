@@ -1,0 +1,185 @@
+"""The fitted ensembles (kind of blur, degraded among sharp-looking images): their JSON form and evaluation, the fit
+command on evaluation sets written to disk, and the estimate reading fitted files."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gsmsdr_ns.estimate import EstimateConfig, estimate_degradations
+from gsmsdr_ns.estimate.ensemble import (
+    KIND_FEATURES,
+    MISSING,
+    ensemble_to_json,
+    evidence_matrix,
+    load_degraded_model,
+    load_kind_model,
+    log_odds,
+    parse_ensemble,
+    probability,
+)
+from gsmsdr_ns.estimate.fit_ensembles import FitEnsemblesCLI, FitSettings, collect_rows
+from gsmsdr_ns.estimate.records import estimate_fingerprint
+from gsmsdr_ns.io.images import write_image
+from test_estimate import defocus_by, dwelling_shake, motion_blur, sharp_views
+
+
+def _stump(feature: int, threshold: float, low: float, high: float) -> dict:
+    return {"left": [1, -1, -1], "right": [2, -1, -1], "feature": [feature, 0, 0],
+            "threshold": [threshold, -2.0, -2.0], "value": [0.0, low, high]}  # fmt: skip
+
+
+def test_an_ensemble_sums_its_trees_leaves_as_log_odds():
+    text = ensemble_to_json(["a", "b"], 0.5, 0.1, [_stump(0, 0.3, -4.0, 6.0), _stump(1, 2.0, 1.0, -1.0)], "motion")
+    model = parse_ensemble(text)
+    X = np.array([[0.1, 5.0], [0.9, 0.0], [MISSING, MISSING]])
+    # row 0: left of the first stump (-4), right of the second (-1); row 1: 6 and 1; missing goes left (-4, 1)
+    assert np.allclose(log_odds(model, X), [0.5 - 0.5, 0.5 + 0.7, 0.5 - 0.3])
+    assert np.allclose(probability(model, X), 1 / (1 + np.exp(-log_odds(model, X))))
+    assert parse_ensemble(text).digest == model.digest != parse_ensemble(text.replace("0.5", "0.25", 1)).digest
+
+
+def test_missing_evidence_becomes_the_missing_value():
+    columns = {"a": np.array([1.5, np.nan]), "b": np.array([np.inf, 2.0]), "c": np.array([0.0, 1.0])}
+    X = evidence_matrix(columns, ("b", "a"))
+    assert X.tolist() == [[MISSING, 1.5], [2.0, MISSING]]
+    with pytest.raises(KeyError, match="'d'"):
+        evidence_matrix(columns, ("a", "d"))
+
+
+def test_a_bad_model_file_is_named(tmp_path):
+    bad = tmp_path / "model.json"
+    bad.write_text(json.dumps({"features": ["a"], "base": 0, "learning_rate": 1, "trees": [_stump(3, 0, 0, 0)]}))
+    with pytest.raises(ValueError, match="model.json"):
+        load_kind_model(str(bad))
+    with pytest.raises(FileNotFoundError, match="missing.json"):
+        load_kind_model(str(tmp_path / "missing.json"))
+    with pytest.raises(FileNotFoundError, match="degraded-image model.*missing.json"):
+        load_degraded_model(str(tmp_path / "missing.json"))
+    elsewhere = tmp_path / "other.json"
+    elsewhere.write_text(ensemble_to_json(["not_measured"], 0.0, 1.0, [_stump(0, 0.0, 1.0, -1.0)], "motion"))
+    views = sharp_views()[:4]
+    with pytest.raises(ValueError, match="kind-of-blur model .*other.json reads .*not_measured"):
+        estimate_degradations(views + [motion_blur(views[0])], EstimateConfig(kind_model=str(elsewhere)))
+    with pytest.raises(ValueError, match="degraded-image model .*other.json reads .*not_measured"):
+        estimate_degradations(views + [motion_blur(views[0])], EstimateConfig(degraded_model=str(elsewhere)))
+
+
+def test_the_builtin_models_read_the_estimate_evidence_and_key_the_cache():
+    kind, degraded = load_kind_model(""), load_degraded_model("")
+    assert kind.features == degraded.features == KIND_FEATURES and min(len(kind.trees), len(degraded.trees)) > 10
+    assert kind.digest != degraded.digest
+    assert estimate_fingerprint()["kind_model_digest"] == kind.digest
+    assert estimate_fingerprint()["degraded_model_digest"] == degraded.digest
+    rules = estimate_fingerprint(EstimateConfig(kind_from="rules", sharp_from="rules"))
+    assert "kind_model_digest" not in rules and "degraded_model_digest" not in rules
+
+
+def _evaluation_set(root: Path, offset: int) -> Path:
+    """An evaluation set as gsmsdr_ns.estimate.evaluate writes it: two scenes with true records (one shaken, one
+    defocused), each of 4 sharp views, 4 blurred ones and 2 views defocused so mildly that the thresholds call them
+    sharp."""
+    views = sharp_views()
+    for kind in ("motion", "defocus"):
+        scene = root / f"synth-{kind}"
+        (scene / "images").mkdir(parents=True)
+        records = {}
+        for i, view in enumerate(views):
+            name = f"view_{i:02d}.png"
+            if i < 4:
+                image, effects = view, {}
+            elif kind == "motion":
+                image = dwelling_shake(view, 9 + offset + i, 0.7 * i) if i % 2 else motion_blur(view)
+                effects = {"motion": {"blur_px": 9.0}}
+            else:
+                image, effects = defocus_by(view, 2.5 + 0.5 * (i - 4) + 0.25 * offset), {"defocus": {"radius_px": 3}}
+            write_image(scene / "images" / name, image)
+            records[name] = {"degraded": bool(effects), "effects": effects}
+        for i in (0, 1):
+            name = f"view_{i:02d}_soft.png"
+            write_image(scene / "images" / name, defocus_by(views[i], 0.65 + 0.1 * i + 0.05 * offset))
+            records[name] = {"degraded": True, "effects": {"defocus": {"radius_px": 0.7}}}
+        (scene / "degradation.json").write_text(json.dumps({"version": 1, "images": records}), encoding="utf8")
+    return root
+
+
+@pytest.fixture(scope="module")
+def evaluation_sets(tmp_path_factory) -> tuple[Path, Path]:
+    """Two evaluation sets (see :func:`_evaluation_set`), written once for this module's tests (read only)."""
+    root = tmp_path_factory.mktemp("sets")
+    return _evaluation_set(root / "A", 0), _evaluation_set(root / "B", 1)
+
+
+def test_the_fit_command_writes_ensembles_the_estimate_reads(evaluation_sets, tmp_path, capsys):
+    sets = evaluation_sets
+    rows = collect_rows(sets)
+    assert len(rows.truth) == 40 and set(rows.group) == {"A", "B"}
+    kind, degraded = rows.kind_rows(), rows.degraded_rows()
+    assert kind.sum() == 16 and (rows.truth[kind] == "motion").sum() == 8
+    assert degraded.sum() == 24 and (rows.truth[degraded] != "sharp").sum() == 8  # the mild views pass as sharp
+    out = tmp_path / "fitted"
+    FitEnsemblesCLI(work=sets, kind_out=out / "kind.json", degraded_out=out / "degraded.json",
+                    settings=FitSettings(trees=30, depth=2, learning_rate=0.3, subsample=1.0)).main()  # fmt: skip
+    printed = capsys.readouterr().out
+    assert "| all | generated | 16 |" in printed  # the leave-one-set-out tables: per set, then by threshold
+    assert "| all | generated | 24 | 8 | 66.7 % |" in printed  # the rules alone call every one of these sharp
+    sweep = [line for line in printed.splitlines() if line.startswith("| 0.")]
+    kind_sweep = ["0.5", "0.55", "0.6", "0.65", "0.7", "0.75", "0.8"]
+    degraded_sweep = ["0.5", "0.6", "0.7", "0.8", "0.9"]
+    assert [line.split(" | ")[0][2:] for line in sweep] == kind_sweep + degraded_sweep
+    assert sweep[0].endswith("| 0 / 0 |")  # at 0.5 every kind is named: none unknown
+    assert sorted(p.name for p in out.iterdir()) == ["degraded.json", "kind.json"]  # no temporary file left behind
+    views = sharp_views()
+    images = views[:4] + [motion_blur(views[4]), dwelling_shake(views[5], 10, 2.0), defocus_by(views[6], 3.0),
+                          defocus_by(views[7], 3.5), defocus_by(views[2], 0.7), defocus_by(views[3], 0.75)]  # fmt: skip
+    cfg = EstimateConfig(kind_model=str(out / "kind.json"), degraded_model=str(out / "degraded.json"))
+    estimates = estimate_degradations(images, cfg)
+    assert [e.label for e in estimates[:8]] == ["sharp"] * 4 + ["motion"] * 2 + ["defocus"] * 2
+    assert all(e.motion_probability > 0.6 for e in estimates[4:6])
+    assert all(e.motion_probability < 0.4 for e in estimates[6:8])
+    assert all(e.motion_probability is None for e in estimates[:4])  # not blurred: not judged
+    # the mild views: sharp by the thresholds, flagged by the ensemble, then of the kind the other one names
+    assert all(e.degraded_probability >= 0.7 and e.blurred is None and e.label != "sharp" for e in estimates[8:])
+    assert all(e.degraded_probability < 0.7 for e in estimates[:4])
+    assert all(e.degraded_probability is None for e in estimates[4:8])  # not sharp by the thresholds: not asked
+    rules = estimate_degradations(images, dataclasses.replace(cfg, sharp_from="rules"))
+    assert [e.label for e in rules[8:]] == ["sharp", "sharp"]
+    # a probability no image reaches leaves every kind unknown, the images still blurred
+    unsure = estimate_degradations(images, dataclasses.replace(cfg, kind_probability=1.01))
+    assert all(e.label == "unknown" and e.blurred is True for e in unsure[4:8])
+
+
+def test_the_fit_refuses_sets_without_both_kinds(evaluation_sets, tmp_path):
+    root = tmp_path / "A"
+    shutil.copytree(evaluation_sets[0] / "synth-motion", root / "synth-motion")  # shaken views only
+    with pytest.raises(ValueError, match="all motion"):
+        FitEnsemblesCLI(work=(root,), kind_out=tmp_path / "k.json", degraded_out=tmp_path / "d.json",
+                        cross_validate=False).main()  # fmt: skip
+    assert not (tmp_path / "k.json").exists() and not (tmp_path / "d.json").exists()
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="empty holds no scene"):
+        collect_rows((tmp_path / "empty",))
+
+
+def test_the_fit_trains_on_exactly_what_the_estimate_reads(evaluation_sets):
+    from gsmsdr_ns.estimate.fit_ensembles import scene_rows
+    from gsmsdr_ns.estimate.records import read_folder
+
+    scene = evaluation_sets[0] / "synth-motion"
+    X, labels, truth = scene_rows(scene)
+    names, images = read_folder(scene / "images")
+    assert X.shape == (10, len(KIND_FEATURES)) and truth.count("motion") == 4 and truth.count("defocus") == 2
+    estimates = estimate_degradations(images)
+    # the same numbers through the built-in ensembles give the estimate's own probabilities
+    judged = [i for i, e in enumerate(estimates) if e.motion_probability is not None]
+    assert len(judged) >= 4
+    assert np.allclose(probability(load_kind_model(""), X[judged]), [estimates[i].motion_probability for i in judged])
+    asked = [i for i, e in enumerate(estimates) if e.degraded_probability is not None]
+    assert asked == [i for i, label in enumerate(labels) if label == "sharp"] and len(asked) >= 4
+    assert np.allclose(probability(load_degraded_model(""), X[asked]),
+                       [estimates[i].degraded_probability for i in asked])  # fmt: skip
