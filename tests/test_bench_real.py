@@ -178,6 +178,37 @@ def test_methods_train_on_the_shrunk_copies_and_the_estimate_judges_the_full_siz
     assert len(outputs.metadata["degradations"]) == 4
 
 
+def test_a_new_estimate_that_changes_no_record_keeps_the_runs_record(built, tmp_path, monkeypatch) -> None:
+    """A record of a run on estimated records, as train_and_record writes it (its numbers stand for a finished run),
+    is re-keyed when only the estimate's fingerprint changed and the records it trained on are the same; it is rerun
+    when they differ."""
+    import gsmsdr_ns.estimate.records as records
+    from gsmsdr_ns.bench.records import load_record, write_json_atomic
+    from gsmsdr_ns.bench.runner import plan_runs, record_path, rekey_unchanged_estimates, training_records_digest
+
+    suite, work, out = built["suite"], built["work"], tmp_path / "out"
+    key = RunKey("fern6-motion", "full", 20, 0)
+    assert key in suite.runs()
+    digest = training_records_digest(suite, key, work, tmp_path / "ns")
+    old = fingerprint(suite, key)
+    record = {"id": key.id, "fingerprint": old, "fingerprint_without_estimate": fingerprint(suite, key, estimate=False),
+              "training_records": digest, "psnr": 20.0}  # fmt: skip
+    write_json_atomic(record_path(out, key), record)
+    assert key.id in plan_runs(suite, out).reused and not rekey_unchanged_estimates(suite, out, work, tmp_path / "ns")
+    monkeypatch.setattr(records, "METHOD_VERSION", records.METHOD_VERSION + 1)  # a new estimate, the same labels
+    assert fingerprint(suite, key) != old and key in plan_runs(suite, out).todo
+    assert rekey_unchanged_estimates(suite, out, work, tmp_path / "ns") == [key.id]
+    kept = load_record(record_path(out, key))
+    assert kept["fingerprint"] == fingerprint(suite, key) and kept["rekeyed_from"] == [old] and kept["psnr"] == 20.0
+    assert key.id in plan_runs(suite, out).reused
+    # records that differ from what the run trained on: rerun
+    write_json_atomic(record_path(out, key), {**record, "training_records": "0" * 16})
+    assert not rekey_unchanged_estimates(suite, out, work, tmp_path / "ns") and key in plan_runs(suite, out).todo
+    # a change outside the estimate (another step budget's schedule, say) is never forgiven
+    write_json_atomic(record_path(out, key), {**record, "fingerprint_without_estimate": "0" * 16})
+    assert not rekey_unchanged_estimates(suite, out, work, tmp_path / "ns")
+
+
 def test_scenes_share_cameras_and_differ_only_where_they_should(built) -> None:
     data = built["data"]
     estimated, true = (read_colmap(data[m] / "sparse" / "0", tracks=True) for m in ("full", "full-true"))
@@ -254,15 +285,21 @@ def test_registered_test_poses_agree_with_the_sharp_run(built) -> None:
 
 @pytest.mark.slow
 def test_real_suite_end_to_end(photo_set, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from gsmsdr_ns.bench.runner import run_suite
+    from gsmsdr_ns.bench.runner import run_suite, training_records_digest
 
     monkeypatch.setenv(DATA_DIR_ENV, str(photo_set))
     config = tmp_path / "real-tiny.yaml"
     config.write_text(suite_text("[plain, full, full-true, sharp]", steps=20), encoding="utf8")
-    outcome = run_suite(load_suite(config), tmp_path / "out", progress=False, plots=False)
+    outcome_suite = load_suite(config)
+    outcome = run_suite(outcome_suite, tmp_path / "out", progress=False, plots=False)
     assert not outcome.failed and len(outcome.trained) == 4
     by_method = {r["method"]: r for r in outcome.records}
     assert re.search(r"-estimated-l\d+$", by_method["full"]["data"])  # the scene without records
+    # what a later estimate is checked against before this record is kept (rekey_unchanged_estimates)
+    key = RunKey("fern6-motion", "full", 20, 0)
+    assert by_method["full"]["training_records"] == training_records_digest(
+        outcome_suite, key, tmp_path / "out", tmp_path / "ns")
+    assert "training_records" not in by_method["plain"]
     assert re.search(r"-true-l\d+$", by_method["full-true"]["data"])  # its twin with the true records
     assert all(np.isfinite(r["psnr"]) and r["num_test_views"] == 2 for r in outcome.records)
     assert "fern6-motion" in (tmp_path / "out" / "results.md").read_text(encoding="utf8")

@@ -9,7 +9,9 @@ In the output folder:
 * ``runs/<scene>__<method>__<steps>__s<seed>.json``: one record per finished run, written atomically when the run
   ends; ``runs/<same>.log``: what the run printed. A rerun of the suite skips every run whose record exists and
   matches the run's settings (:func:`fingerprint`), so an interrupted suite resumes where it stopped (the run that
-  was interrupted starts over);
+  was interrupted starts over). A run on estimated records whose fingerprint changed only because the estimate did
+  (its version, config or fitted ensembles) keeps its record when the records it trains on are the same as they
+  were (:func:`rekey_unchanged_estimates`);
 * ``results.csv``, ``results.md`` and the plots (:mod:`gsmsdr_ns.bench.report`), regenerated after every run;
 * ``scenes/``: the generated scenes (made once, reused).
 """
@@ -57,14 +59,15 @@ def preset_fingerprint(method: MethodSpec) -> str:
     return repr(model) + repr(sorted(optimizers.items()))
 
 
-def fingerprint(suite: Suite, key: RunKey) -> str:
-    """What a record's numbers depend on; a record whose fingerprint differs is rerun."""
+def fingerprint(suite: Suite, key: RunKey, estimate: bool = True) -> str:
+    """What a record's numbers depend on; a record whose fingerprint differs is rerun. ``estimate=False`` leaves
+    out the estimate's fingerprint (the part :func:`rekey_unchanged_estimates` may forgive)."""
     method = METHODS[key.method]
     payload = {
         "version": RECORD_VERSION,
         "scene": suite.scene(key.scene).fingerprint(),
         "method": {"base": method.base, "blur_field": method.blur_field, "sharp_data": method.sharp_data},
-        **_training_settings(suite, key),
+        **_training_settings(suite, key, estimate),
     }
     if suite.align_poses:  # only then, so records of suites without alignment keep their fingerprint
         payload["align_poses"] = True
@@ -88,9 +91,9 @@ def training_identity(suite: Suite, key: RunKey) -> str:
     return _digest(payload)
 
 
-def _training_settings(suite: Suite, key: RunKey) -> Dict[str, Any]:
+def _training_settings(suite: Suite, key: RunKey, estimate: bool = True) -> Dict[str, Any]:
     """The settings of run ``key`` both keys above share: resolved preset, steps, seed, schedule, evaluation steps,
-    LPIPS, and the estimate's version when the run trains on estimated records."""
+    LPIPS, and (``estimate``) the estimate's fingerprint when the run trains on estimated records."""
     method = METHODS[key.method]
     settings = {
         "preset": preset_fingerprint(method),
@@ -100,7 +103,7 @@ def _training_settings(suite: Suite, key: RunKey) -> Dict[str, Any]:
         "eval_steps": suite.eval_steps(key.steps),
         "lpips": suite.lpips,
     }
-    if suite.scene(key.scene).trains_on_estimated_records(method):
+    if estimate and suite.scene(key.scene).trains_on_estimated_records(method):
         from gsmsdr_ns.estimate.records import estimate_fingerprint
 
         settings["estimate"] = estimate_fingerprint()  # a real-photo scene trains on the records estimated for it
@@ -118,7 +121,52 @@ def copied_record(suite: Suite, key: RunKey, source: Dict[str, Any]) -> Dict[str
     record = copy.deepcopy(source)
     record.update(id=key.id, suite=suite.name, scene=key.scene, method=key.method, steps=key.steps, seed=key.seed,
                   fingerprint=fingerprint(suite, key), same_training_as=source.get("same_training_as", source["id"]))
+    if "fingerprint_without_estimate" in record:
+        record["fingerprint_without_estimate"] = fingerprint(suite, key, estimate=False)
     return record
+
+
+def records_digest(config) -> str:
+    """Digest of the degradation records a configured TrainerConfig's model trains on, as its dataparser gives them
+    for the train split (estimated records included: the estimate is cached beside the scene)."""
+    parser = config.pipeline.datamanager.dataparser
+    parser.data = config.pipeline.datamanager.data  # as the datamanager hands it over
+    records = parser.setup().get_dataparser_outputs("train").metadata.get("degradations")
+    return _digest({"records": records})
+
+
+def training_records_digest(suite: Suite, key: RunKey, scene_root: Path, work_dir: Path, log=None) -> str:
+    """:func:`records_digest` of run ``key`` (its scene is built first if missing)."""
+    method, scene = METHODS[key.method], suite.scene(key.scene)
+    config = method.make_config(scene.data(method, scene_root, log), work_dir)
+    scene.configure(config)
+    return records_digest(config)
+
+
+def rekey_unchanged_estimates(
+    suite: Suite, out: Path, scene_root: Path, work_dir: Path, log: Optional[Callable[[str], None]] = None
+) -> List[str]:
+    """Give the current fingerprint to the records of runs on estimated records whose fingerprint differs only by
+    the estimate's (``fingerprint_without_estimate`` unchanged) while the records they trained on are the same as
+    the current estimate gives (``training_records``): the same training, so no rerun. -> the ids re-keyed."""
+    rekeyed = []
+    for key in suite.runs():
+        scene, method = suite.scene(key.scene), METHODS[key.method]
+        if not (scene.supports(method) and scene.trains_on_estimated_records(method)):
+            continue
+        record = load_record(record_path(out, key))
+        current = fingerprint(suite, key)
+        if record is None or record.get("fingerprint") == current or "training_records" not in record:
+            continue
+        if record.get("fingerprint_without_estimate") != fingerprint(suite, key, estimate=False):
+            continue
+        if training_records_digest(suite, key, scene_root, work_dir, log) != record["training_records"]:
+            continue
+        record["rekeyed_from"] = record.get("rekeyed_from", []) + [record["fingerprint"]]
+        record["fingerprint"] = current
+        write_json_atomic(record_path(out, key), record)
+        rekeyed.append(key.id)
+    return rekeyed
 
 
 def train_and_record(
@@ -145,6 +193,10 @@ def train_and_record(
     scene.configure(config)
     config.experiment_name = key.id
     suite.schedule_for(key.steps).apply(config)
+    estimated: Dict[str, str] = {}
+    if scene.trains_on_estimated_records(method):  # what lets a later estimate that changes no label keep the record
+        estimated = {"training_records": records_digest(config),
+                     "fingerprint_without_estimate": fingerprint(suite, key, estimate=False)}  # fmt: skip
 
     memory = PeakMemory()
     memory.reset()
@@ -182,6 +234,7 @@ def train_and_record(
             "steps": key.steps,
             "seed": key.seed,
             "fingerprint": fingerprint(suite, key),
+            **estimated,
             "data": str(data),
             "psnr": final["psnr"],
             "ssim": final["ssim"],
@@ -319,6 +372,8 @@ def run_suite(
     console = console or Console(file=sys.stdout)
     machine = machine_info()
 
+    for run_id in rekey_unchanged_estimates(suite, out, scene_root, out / "runs" / "nerfstudio"):
+        console.print(f"{run_id}: the estimate changed but not the records this run trains on: its record is kept")
     plan = plan_runs(suite, out)
     todo, reused, skipped = plan.todo, plan.reused, plan.skipped
     followers: Dict[str, List[RunKey]] = {}  # a run in todo -> the runs that copy its record once it is trained
