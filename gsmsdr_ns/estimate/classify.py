@@ -573,6 +573,7 @@ def decide(ev: SetEvidence, config: Optional[EstimateConfig] = None) -> list[Deg
         return "unknown", 0.0
 
     out = []
+    ref_set = set(ev.reference.tolist())
     judged: set[int] = set()  # images whose kind of blur was asked for
     flag_asked: set[int] = set()  # images the degraded-image ensemble was asked about
     for i in range(n):
@@ -618,7 +619,7 @@ def decide(ev: SetEvidence, config: Optional[EstimateConfig] = None) -> list[Deg
                 mixres_factor=factor if (factor > 1 or blurred is not None) else (1 if label == "sharp" else None),
                 grid_score=float(gscore),
                 blurred=blurred,
-                reference=i in set(ev.reference.tolist()),
+                reference=i in ref_set,
                 soft_width=_number(ev.soft_width[i]),
                 width_spread=_number(width_spread[i]),
                 isotropy=_number(isotropy[i]),
