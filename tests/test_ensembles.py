@@ -183,3 +183,19 @@ def test_the_fit_trains_on_exactly_what_the_estimate_reads(evaluation_sets):
     assert asked == [i for i, label in enumerate(labels) if label == "sharp"] and len(asked) >= 4
     assert np.allclose(probability(load_degraded_model(""), X[asked]),
                        [estimates[i].degraded_probability for i in asked])  # fmt: skip
+
+
+def test_the_degraded_image_ensemble_leaves_images_smaller_than_its_fitting_sets_to_the_thresholds():
+    """It was fitted on images 200-600 px wide; on a set of 96x72 crops it is not asked, so labels are the
+    thresholds' own."""
+    from skimage.transform import resize
+
+    views = sharp_views()
+    small = [(resize(v, (72, 96), anti_aliasing=True) * 255).astype(np.uint8) for v in views]
+    small += [(resize(defocus_by(v, 1.5), (72, 96), anti_aliasing=True) * 255).astype(np.uint8) for v in views[:2]]
+    default = estimate_degradations(small)
+    assert all(e.degraded_probability is None for e in default) and sum(e.label == "sharp" for e in default) >= 4
+    rules = estimate_degradations(small, EstimateConfig(sharp_from="rules"))
+    assert [e.label for e in default] == [e.label for e in rules]
+    asked = estimate_degradations(small, EstimateConfig(degraded_min_size=0))
+    assert [e.degraded_probability is not None for e in asked] == [e.label == "sharp" for e in default]

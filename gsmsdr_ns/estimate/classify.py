@@ -156,6 +156,9 @@ class EstimateConfig:
     """The degraded-image ensemble's JSON file ("": the one shipped with the package)."""
     degraded_probability: float = 0.7
     """The ensemble flags an image the thresholds call sharp when its probability of degraded is at least this."""
+    degraded_min_size: int = 200
+    """... and only on images whose longer side is at least this many px: the ensemble was fitted on images 200-600
+    px wide, and on tiny ones it flags sharp views (a 64x48 generated scene: 3 of 10)."""
     kind_in_between: bool = True
     """An image neither sharp nor clearly blurred (sharpness between the two thresholds) gets the kind of blur the
     ensemble names (with ``kind_from="rules"``: motion when its directional loss names motion), else unknown: it
@@ -221,7 +224,8 @@ class DegradationEstimate:
     images it did not judge (sharp, mixres, a set too small, or ``kind_from="rules"``)."""
     degraded_probability: Optional[float] = None
     """The degraded-image ensemble's probability that an image the thresholds call sharp is degraded; None for the
-    images it was not asked about (not sharp by the thresholds, or ``sharp_from="rules"``)."""
+    images it was not asked about (not sharp by the thresholds, smaller than ``degraded_min_size``, or
+    ``sharp_from="rules"``)."""
 
     def evidence(self) -> dict:
         """The numbers as a JSON-ready dict (rounded)."""
@@ -436,6 +440,8 @@ class SetEvidence:
     """Tiles' coherence of detail loss (one part of the directional loss)."""
     spectral_anisotropy: np.ndarray
     """Anisotropy of the spectrum's fall-off (the other part)."""
+    size: np.ndarray
+    """Longer side of each image in px."""
     grid: list
     """(mixres factor snapped to the groups, periodicity score) per image."""
     reference: np.ndarray
@@ -491,6 +497,7 @@ def set_evidence(feats: Sequence[ImageFeatures], config: Optional[EstimateConfig
         edge_rise=np.array([f.edge_rise_ratio for f in feats]),
         tile_coherence=np.array([f.tile_coherence for f in feats]),
         spectral_anisotropy=np.array([f.spectral_anisotropy for f in feats]),
+        size=np.array([max(f.width, f.height) for f in feats]),
         grid=_grid_factor(feats, ref, cfg),
         reference=ref,
         sharp_idx=sharp_idx,
@@ -588,7 +595,7 @@ def decide(ev: SetEvidence, config: Optional[EstimateConfig] = None) -> list[Deg
             trusted = ev.trusted_reference and not ev.soft[i]  # sharpest edges as sharp as the references', softest not
             label, blurred = ("sharp", False) if trusted else ("unknown", None)
             conf = _confidence(sharp[i], cfg.sharp_threshold, 2.0) if trusted else 0.0
-            if trusted and cfg.sharp_from == "model":
+            if trusted and cfg.sharp_from == "model" and ev.size[i] >= cfg.degraded_min_size:
                 flag_asked.add(i)
                 if p_degraded[i] >= cfg.degraded_probability:
                     # sharp by the two thresholds, degraded by all the evidence together (mild defocus, mostly)
