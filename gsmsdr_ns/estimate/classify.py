@@ -599,7 +599,7 @@ def decide(ev: SetEvidence, config: Optional[EstimateConfig] = None) -> list[Deg
                 flag_asked.add(i)
                 if p_degraded[i] >= cfg.degraded_probability:
                     # sharp by the two thresholds, degraded by all the evidence together (mild defocus, mostly)
-                    if cfg.kind_from == "model":
+                    if cfg.kind_from == "model" and cfg.kind_in_between:
                         judged.add(i)
                     sure = (p_degraded[i] - cfg.degraded_probability) / max(1.0 - cfg.degraded_probability, 1e-6)
                     blurred = None
