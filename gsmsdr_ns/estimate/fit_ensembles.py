@@ -21,7 +21,7 @@ import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Tuple
+from typing import Iterator, List, Tuple
 
 import numpy as np
 import tyro
@@ -169,12 +169,9 @@ def kind_tables(rows: EvidenceRows, p: np.ndarray, threshold: float, sweep: Tupl
     lines = [f"Kind of blur, leave one set out, probability {threshold}:", "",
              "| set | scenes | blurred images | right | wrong kind | unknown |",
              "|---|---|---|---|---|---|"]  # fmt: skip
-    for g in list(dict.fromkeys(group.tolist())) + ["all"]:
-        for synthetic, kind in ((True, "generated"), (False, "photos")):
-            m = (synth == synthetic) & ((group == g) if g != "all" else True)
-            if m.sum():
-                lines.append(f"| {g} | {kind} | {int(m.sum())} | {100 * right[m].mean():.1f} % | {int(wrong[m].sum())} "
-                             f"| {int(unknown[m].sum())} |")  # fmt: skip
+    for g, kind, m in _per_set(group, synth):
+        lines.append(f"| {g} | {kind} | {int(m.sum())} | {100 * right[m].mean():.1f} % | {int(wrong[m].sum())} "
+                     f"| {int(unknown[m].sum())} |")  # fmt: skip
     lines += ["", "Kind of blur, leave one set out, all sets, by threshold (generated / photos):", "",
               "| probability | right | wrong kind | unknown |", "|---|---|---|---|"]  # fmt: skip
     for t in sweep:
@@ -193,14 +190,11 @@ def degraded_tables(rows: EvidenceRows, p: np.ndarray, threshold: float, sweep: 
              "| set | scenes | images | degraded | right, rules | right, flagged | caught | sharp lost |",
              "|---|---|---|---|---|---|---|---|"]  # fmt: skip
     flagged = p >= threshold
-    for g in list(dict.fromkeys(group.tolist())) + ["all"]:
-        for synthetic, kind in ((True, "generated"), (False, "photos")):
-            m = (synth == synthetic) & ((group == g) if g != "all" else True)
-            if m.sum():
-                caught, lost = (flagged & degraded)[m].sum(), (flagged & ~degraded)[m].sum()
-                lines.append(f"| {g} | {kind} | {int(m.sum())} | {int(degraded[m].sum())} | "
-                             f"{100 * (~degraded[m]).mean():.1f} % | {100 * (flagged == degraded)[m].mean():.1f} % | "
-                             f"{int(caught)} | {int(lost)} |")  # fmt: skip
+    for g, kind, m in _per_set(group, synth):
+        caught, lost = (flagged & degraded)[m].sum(), (flagged & ~degraded)[m].sum()
+        lines.append(f"| {g} | {kind} | {int(m.sum())} | {int(degraded[m].sum())} | "
+                     f"{100 * (~degraded[m]).mean():.1f} % | {100 * (flagged == degraded)[m].mean():.1f} % | "
+                     f"{int(caught)} | {int(lost)} |")  # fmt: skip
     lines += ["", "Images the rules call sharp, all sets, by threshold (generated / photos):", "",
               "| probability | right | caught | sharp lost |", "|---|---|---|---|"]  # fmt: skip
     for t in sweep:
@@ -208,6 +202,15 @@ def degraded_tables(rows: EvidenceRows, p: np.ndarray, threshold: float, sweep: 
         lines.append(f"| {t} | {_share(f == degraded, synth)} | {_sum(f & degraded, synth)} | "
                      f"{_sum(f & ~degraded, synth)} |")  # fmt: skip
     return "\n".join(lines)
+
+
+def _per_set(group: np.ndarray, synth: np.ndarray) -> Iterator[tuple[str, str, np.ndarray]]:
+    """(set, "generated" / "photos", row mask [n]) for each set in order, then "all", skipping empty masks."""
+    for g in list(dict.fromkeys(group.tolist())) + ["all"]:
+        for synthetic, kind in ((True, "generated"), (False, "photos")):
+            m = (synth == synthetic) & ((group == g) if g != "all" else True)
+            if m.sum():
+                yield g, kind, m
 
 
 def _share(ok: np.ndarray, synth: np.ndarray) -> str:
