@@ -60,3 +60,18 @@ def test_the_command_measures_in_fresh_processes_and_merges_its_results(tmp_path
     assert "gsmsdr-bench memory --lens fused --sizes 40x24" in markdown and markdown.count("| 40x24 |") == 3
     with pytest.raises(SystemExit, match="no field 'nope'"):
         entrypoint(["memory", "--set", "nope=1", "--out", str(out)])
+
+
+def test_extra_peak_memory_counts_what_the_span_touched_from_the_resident_set_at_the_reset():
+    import numpy as np
+
+    from gsmsdr_ns.bench.timing import PeakMemory
+
+    peak = PeakMemory()
+    for _ in range(20):  # nothing allocated: never below zero (the baseline and the peak share one counter)
+        peak.reset()
+        assert peak.extra_rss_mb() >= 0, (peak.baseline_mb, peak.peak_rss_mb())
+    peak.reset()
+    touched = np.ones(64 * 2**20 // 8)  # 64 MiB, every page written
+    assert peak.extra_rss_mb() >= 60, (peak.baseline_mb, peak.peak_rss_mb())
+    del touched

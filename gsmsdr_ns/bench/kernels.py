@@ -6,12 +6,12 @@ hits them alike.
 
 Extra peak memory: every measurement runs in a fresh interpreter (``python -m gsmsdr_ns.bench.kernels --peak-memory
 ...``). The child warms the implementation up on a tiny input (extension loaded, thread pool started), allocates the
-inputs with in-place fills (no temporaries), records its resident set (VmRSS), resets the kernel's high-water mark
-(``echo 5 > /proc/self/clear_refs``), runs one forward + backward and reads the high-water mark again (VmHWM).
-Extra peak = VmHWM - VmRSS before the run: every page the operation touched on top of the inputs, the gradients
+inputs with in-place fills (no temporaries), resets the kernel's high-water mark (``echo 5 > /proc/self/clear_refs``)
+and reads it (VmHWM, now the resident set), runs one forward + backward and reads the high-water mark again.
+Extra peak = VmHWM after - VmHWM before the run: every page the operation touched on top of the inputs, the gradients
 included (``weights.grad`` alone is B*K*K*H*W floats, 277 MB at K=17, and is the same for every implementation).
-Where clear_refs is not writable the child falls back to ``ru_maxrss`` (KiB on Linux) minus VmRSS, which is only
-valid because nothing before the run allocated more than the inputs.
+Where clear_refs is not writable the child falls back to ``ru_maxrss`` (KiB on Linux) minus VmRSS at the reset,
+which is only valid because nothing before the run allocated more than the inputs.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Callable, Dict, List, Sequence, Tuple
 
 import torch
 
-from gsmsdr_ns.bench.timing import PeakMemory, proc_status_kib
+from gsmsdr_ns.bench.timing import PeakMemory
 
 IMPLS = ("ours", "torch", "unfold")
 """ours: apply_pixel_kernels (backend auto: C++ on CPU); torch: its PyTorch twin; unfold: the BAGS version."""
@@ -91,12 +91,11 @@ def _peak_memory_child(impl: str, K: int, height: int, width: int, channels: int
     _forward_backward(fn, *tiny)  # load the extension, start the thread pool, fault the code pages in
     del tiny
     image, weights, grad = make_inputs(K, height, width, channels, batch)
-    rss_before = proc_status_kib("VmRSS")
     peak = PeakMemory()
     peak.reset()  # VmHWM back to the current RSS where /proc allows it
     _forward_backward(fn, image, weights, grad)
     method = "VmHWM after clear_refs" if peak.span_reset else "ru_maxrss"
-    return dict(impl=impl, K=K, extra_bytes=round(2**20 * peak.peak_rss_mb()) - 1024 * rss_before, method=method)
+    return dict(impl=impl, K=K, extra_bytes=round(2**20 * peak.extra_rss_mb()), method=method)
 
 
 def measure_peak_memory(

@@ -11,10 +11,10 @@ Every measurement runs in a fresh interpreter (``python -m gsmsdr_ns.bench.memor
 space is capped with ``RLIMIT_AS`` (``--limit-gb``): a configuration that needs more fails inside its own process
 with an allocation error, reported as "> limit", instead of pushing a shared machine into swap. The child builds
 the field, warms everything up on a small image (extension loaded, thread pool started), allocates the inputs,
-records its resident set (VmRSS), resets the high-water mark (``echo 5 > /proc/self/clear_refs``), runs forward and
-backward and reads the high-water mark (VmHWM). Extra peak = VmHWM - VmRSS before the run: every page the step
+resets the high-water mark (``echo 5 > /proc/self/clear_refs``) and reads it (VmHWM, now the resident set), runs
+forward and backward and reads it again. Extra peak = VmHWM after - VmHWM before the run: every page the step
 touched on top of the inputs and the parameters, gradients included. Where clear_refs is not writable the child
-falls back to ``ru_maxrss`` minus VmRSS (an upper bound: the warm-up counts too). The limit counts address space,
+falls back to ``ru_maxrss`` minus VmRSS at the reset (an upper bound: the warm-up counts too). The limit counts address space,
 not resident memory: the imports and the thread pools already reserve a few GB of it (the "set-up address space"
 column), so the memory left for the step is the limit minus that.
 
@@ -179,14 +179,13 @@ def run_child(spec: Mapping[str, Any]) -> Dict[str, Any]:
         for p in field_params + list(lens.parameters()):
             p.grad = None
         render, depth, grad = _inputs(int(spec["width"]), int(spec["height"]), int(spec.get("seed", 0)))
-        rss_before, vm_before = proc_status_kib("VmRSS"), proc_status_kib("VmSize")  # VmSize counts to the limit
         peak = PeakMemory()
         peak.reset()  # VmHWM back to the current RSS where /proc allows it
+        vm_before = proc_status_kib("VmSize")  # VmSize counts to the limit
         forward_s, backward_s = _step(field, lens, scale, spec["lens"], K, render, depth, grad)
         method = "VmHWM after clear_refs" if peak.span_reset else "ru_maxrss"
-        result.update(extra_peak_mb=peak.peak_rss_mb() - rss_before / 1024.0, forward_s=forward_s,
-                      backward_s=backward_s, setup_rss_mb=rss_before / 1024.0, setup_vm_mb=vm_before / 1024.0,
-                      method=method)  # fmt: skip
+        result.update(extra_peak_mb=peak.extra_rss_mb(), forward_s=forward_s, backward_s=backward_s,
+                      setup_rss_mb=peak.baseline_mb, setup_vm_mb=vm_before / 1024.0, method=method)  # fmt: skip
     except (RuntimeError, MemoryError) as exc:
         if not any(marker in f"{type(exc).__name__}: {exc}" for marker in _OOM_MARKERS):
             raise

@@ -290,6 +290,7 @@ class PeakMemory:
 
     def __init__(self) -> None:
         self.span_reset = False
+        self.baseline_mb = float("nan")  # resident set at reset, from the counter peak_rss_mb reads
 
     def reset(self) -> None:
         try:
@@ -298,6 +299,14 @@ class PeakMemory:
             self.span_reset = self._vmhwm_mb() is not None
         except OSError:
             self.span_reset = False
+        # Read after the reset: an RSS read before it can sit pages above the new high-water mark.
+        baseline = self._vmhwm_mb() if self.span_reset else None
+        if baseline is None:
+            try:
+                baseline = proc_status_kib("VmRSS") / 1024.0
+            except (OSError, RuntimeError):
+                baseline = float("nan")
+        self.baseline_mb = float(baseline)
         if torch.cuda.is_available():
             torch.cuda.reset_peak_memory_stats()
 
@@ -313,6 +322,10 @@ class PeakMemory:
         if value is None:
             value = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
         return float(value)
+
+    def extra_rss_mb(self) -> float:
+        """Peak resident memory since :meth:`reset` above the resident set at the reset (MiB)."""
+        return self.peak_rss_mb() - self.baseline_mb
 
     @staticmethod
     def peak_cuda_mb() -> float:
