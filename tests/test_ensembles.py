@@ -70,6 +70,20 @@ def test_a_bad_model_file_is_named(tmp_path):
         estimate_degradations(views + [motion_blur(views[0])], EstimateConfig(degraded_model=str(elsewhere)))
 
 
+def test_a_model_file_rewritten_at_the_same_path_is_read_again(tmp_path):
+    from gsmsdr_ns.io.atomic import write_text_atomic
+
+    path = tmp_path / "kind.json"
+    first = ensemble_to_json(["a"], 0.0, 1.0, [_stump(0, 0.0, -1.0, 1.0)], "motion")
+    second = ensemble_to_json(["a"], 0.0, 1.0, [_stump(0, 0.0, 1.0, -1.0)], "motion")  # the opposite vote
+    write_text_atomic(path, first)
+    assert load_kind_model(str(path)).digest == parse_ensemble(first).digest
+    assert load_kind_model(str(path)) is load_kind_model(str(path))  # unchanged: read once
+    write_text_atomic(path, second)  # as fit_ensembles rewrites it, in the same process
+    assert load_kind_model(str(path)).digest == parse_ensemble(second).digest
+    assert probability(load_kind_model(str(path)), np.array([[1.0]]))[0] < 0.5
+
+
 def test_the_builtin_models_read_the_estimate_evidence_and_key_the_cache():
     kind, degraded = load_kind_model(""), load_degraded_model("")
     assert kind.features == degraded.features == KIND_FEATURES and min(len(kind.trees), len(degraded.trees)) > 10

@@ -105,21 +105,27 @@ def parse_ensemble(text: str, source: str = "<text>") -> TreeEnsemble:
 
 
 @functools.lru_cache(maxsize=8)
+def _parse_file(file: Path, inode: int, mtime_ns: int, size: int) -> TreeEnsemble:
+    """The ensemble in ``file`` as it was at (inode, mtime_ns, size): a file replaced or rewritten is read again."""
+    return parse_ensemble(file.read_text(encoding="utf8"), str(file))
+
+
 def _load(path: str, builtin: Path, what: str) -> TreeEnsemble:
     file = Path(path) if path else builtin
     if not file.is_file():
         raise FileNotFoundError(f"{what} {file} not found; use '' for the built-in one or write one with "
                                 "python -m gsmsdr_ns.estimate.fit_ensembles")  # fmt: skip
-    return parse_ensemble(file.read_text(encoding="utf8"), str(file))
+    stat = file.stat()
+    return _parse_file(file, stat.st_ino, stat.st_mtime_ns, stat.st_size)
 
 
 def load_kind_model(path: str = "") -> TreeEnsemble:
-    """The kind-of-blur ensemble at ``path`` ("": the built-in one), read once per path."""
+    """The kind-of-blur ensemble at ``path`` ("": the built-in one), read again only when the file changed."""
     return _load(path, BUILTIN_KIND_MODEL, "kind-of-blur model (EstimateConfig.kind_model)")
 
 
 def load_degraded_model(path: str = "") -> TreeEnsemble:
-    """The degraded-image ensemble at ``path`` ("": the built-in one), read once per path."""
+    """The degraded-image ensemble at ``path`` ("": the built-in one), read again only when the file changed."""
     return _load(path, BUILTIN_DEGRADED_MODEL, "degraded-image model (EstimateConfig.degraded_model)")
 
 
