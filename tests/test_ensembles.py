@@ -168,6 +168,22 @@ def test_the_fit_command_writes_ensembles_the_estimate_reads(evaluation_sets, tm
     assert all(e.label == "unknown" and e.blurred is True for e in unsure[4:8])
 
 
+def test_a_fit_on_closely_spaced_values_reproduces_scikit_learn_exactly():
+    from sklearn.ensemble import GradientBoostingClassifier
+
+    from gsmsdr_ns.estimate.fit_ensembles import fit_ensemble
+
+    rng = np.random.default_rng(0)
+    X = 0.1 + rng.permutation(600)[:, None] * 3e-8 + np.zeros((1, 2))  # neighbours 3e-8 apart: below 7 decimals
+    X[:, 1] = rng.random(600)
+    y = X[:, 0] > 0.1 + 300 * 3e-8
+    settings = FitSettings(trees=20)
+    text = fit_ensemble(X, y, settings, "y", ("a", "b"))  # raises when it does not reproduce scikit-learn
+    clf = GradientBoostingClassifier(n_estimators=20, max_depth=settings.depth, learning_rate=settings.learning_rate,
+                                     subsample=settings.subsample, random_state=settings.seed).fit(X, y)  # fmt: skip
+    assert np.abs(log_odds(parse_ensemble(text), X) - clf.decision_function(X)).max() < 1e-5
+
+
 def test_the_fit_refuses_sets_without_both_kinds(evaluation_sets, tmp_path):
     root = tmp_path / "A"
     shutil.copytree(evaluation_sets[0] / "synth-motion", root / "synth-motion")  # shaken views only

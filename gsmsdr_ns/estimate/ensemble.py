@@ -76,7 +76,8 @@ def ensemble_to_json(
         "missing": MISSING,
         "base": float(base),
         "learning_rate": float(learning_rate),
-        "trees": [{k: [round(float(v), 7) if k in ("threshold", "value") else int(v) for v in t[k]]
+        # thresholds exact (a rounded one can move past a measured value), leaf values rounded
+        "trees": [{k: [float(v) if k == "threshold" else round(float(v), 7) if k == "value" else int(v) for v in t[k]]
                    for k in ("left", "right", "feature", "threshold", "value")} for t in trees],  # fmt: skip
     }
     return json.dumps(doc, separators=(",", ":"))
@@ -140,7 +141,9 @@ def evidence_matrix(columns: Mapping[str, np.ndarray], features: Sequence[str] =
 
 
 def log_odds(model: TreeEnsemble, X: np.ndarray) -> np.ndarray:
-    """Log-odds per row of X [n, features] -> [n]."""
+    """Log-odds per row of X [n, features] -> [n]. X is compared in float32, as scikit-learn fits and evaluates its
+    trees."""
+    X = np.asarray(X, dtype=np.float32)
     total = np.full(len(X), model.base)
     rows = np.arange(len(X))
     for left, right, feature, threshold, value in model.trees:

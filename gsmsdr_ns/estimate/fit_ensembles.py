@@ -115,9 +115,12 @@ class FitSettings:
     """Seed of the row subsampling."""
 
 
-def fit_ensemble(X: np.ndarray, y: np.ndarray, settings: FitSettings, target: str) -> str:
-    """Fit on X [n, features] / y [n] bool and return the ensemble's JSON text (:func:`~.ensemble.ensemble_to_json`;
-    ``target`` names what y is), checked to reproduce scikit-learn's own decision function."""
+def fit_ensemble(
+    X: np.ndarray, y: np.ndarray, settings: FitSettings, target: str, features: Tuple[str, ...] = KIND_FEATURES
+) -> str:
+    """Fit on X [n, len(features)] / y [n] bool and return the ensemble's JSON text
+    (:func:`~.ensemble.ensemble_to_json`; ``features`` names X's columns, ``target`` what y is), checked to reproduce
+    scikit-learn's own decision function."""
     try:
         from sklearn.ensemble import GradientBoostingClassifier
     except ImportError as exc:  # pragma: no cover - scikit-learn comes with nerfstudio's dependencies
@@ -133,7 +136,7 @@ def fit_ensemble(X: np.ndarray, y: np.ndarray, settings: FitSettings, target: st
         t = stage.tree_
         trees.append({"left": t.children_left, "right": t.children_right, "feature": np.maximum(t.feature, 0),
                       "threshold": t.threshold, "value": t.value[:, 0, 0]})  # fmt: skip
-    text = ensemble_to_json(KIND_FEATURES, np.log(prior / (1.0 - prior)), settings.learning_rate, trees, target)
+    text = ensemble_to_json(features, np.log(prior / (1.0 - prior)), settings.learning_rate, trees, target)
     ours = log_odds(parse_ensemble(text), X)
     theirs = clf.decision_function(X)
     if not np.allclose(ours, theirs, atol=1e-3):
