@@ -14,9 +14,9 @@ the field, warms everything up on a small image (extension loaded, thread pool s
 resets the high-water mark (``echo 5 > /proc/self/clear_refs``) and reads it (VmHWM, now the resident set), runs
 forward and backward and reads it again. Extra peak = VmHWM after - VmHWM before the run: every page the step
 touched on top of the inputs and the parameters, gradients included. Where clear_refs is not writable the child
-falls back to ``ru_maxrss`` minus VmRSS at the reset (an upper bound: the warm-up counts too). The limit counts address space,
-not resident memory: the imports and the thread pools already reserve a few GB of it (the "set-up address space"
-column), so the memory left for the step is the limit minus that.
+falls back to ``ru_maxrss`` minus VmRSS at the reset (an upper bound: the warm-up counts too). The limit counts
+address space, not resident memory: the imports and the thread pools already reserve a few GB of it (the "set-up
+address space" column), so the memory left for the step is the limit minus that.
 
 Results: a table on stdout, and ``results.csv`` / ``results.md`` in ``--out``, merged with the rows already there
 (same size, lens and field configuration: replaced), so "before" and "after" runs accumulate in one table.

@@ -571,6 +571,7 @@ def decide(ev: SetEvidence, config: Optional[EstimateConfig] = None) -> list[Deg
         """(kind, confidence) of image i that is neither sharp nor clearly blurred; ``sure``: how sure it is not
         sharp (the confidence is at most that; 0 when the kind is unknown)."""
         if cfg.kind_in_between and cfg.kind_from == "model":
+            judged.add(i)
             label, conf_kind = kind_from_model(i)
             return label, min(conf_kind, sure)
         if cfg.kind_in_between and directional[i] > cfg.motion_direction:
@@ -599,16 +600,12 @@ def decide(ev: SetEvidence, config: Optional[EstimateConfig] = None) -> list[Deg
                 flag_asked.add(i)
                 if p_degraded[i] >= cfg.degraded_probability:
                     # sharp by the two thresholds, degraded by all the evidence together (mild defocus, mostly)
-                    if cfg.kind_from == "model" and cfg.kind_in_between:
-                        judged.add(i)
                     sure = (p_degraded[i] - cfg.degraded_probability) / max(1.0 - cfg.degraded_probability, 1e-6)
                     blurred = None
                     label, conf = kind_in_between(i, float(sure))
         elif sharp[i] >= cfg.blurred_threshold:
             # neither sharp nor clearly blurred: the kind of blur may still show (and saves simulating both)
             blurred = None
-            if cfg.kind_from == "model" and cfg.kind_in_between:
-                judged.add(i)
             label, conf = kind_in_between(i, _confidence(sharp[i], cfg.sharp_threshold, 2.0))
         else:
             blurred = True

@@ -84,10 +84,9 @@ class EstimateCLI:
             ev = entry["estimate"]
             factor = ev["mixres_factor"]
             table.add_row(name, ev["label"], f"{ev['confidence']:.2f}", f"{ev['sharpness']:.2f}",
-                          number(ev.get("degraded_probability")), number(ev.get("motion_probability")),
-                          number(ev.get("isotropy")),
-                          number(ev.get("directional_loss")), number(ev.get("sharpest_region")),
-                          number(ev.get("detail_spread")), number(ev.get("edge_rise")),
+                          *(number(ev.get(key)) for key in ("degraded_probability", "motion_probability", "isotropy",
+                                                            "directional_loss", "sharpest_region", "detail_spread",
+                                                            "edge_rise")),
                           "?" if factor is None else str(factor))  # fmt: skip
         CONSOLE.print(table)
         CONSOLE.print("conf: confidence; shp: sharpness relative to the set; p(d): the fitted ensemble's "
