@@ -8,7 +8,8 @@ import csv
 import pytest
 
 from gsmsdr_ns.bench.cli import entrypoint
-from gsmsdr_ns.bench.memory import measure, merge_rows, parse_overrides, parse_size
+from gsmsdr_ns.bench.memory import format_table, measure, merge_rows, parse_overrides, parse_size
+from gsmsdr_ns.bench.timing import rss_resolution_mb
 
 
 def test_sizes_and_overrides_parse_and_bad_ones_name_the_fix():
@@ -53,8 +54,10 @@ def test_the_command_measures_in_fresh_processes_and_merges_its_results(tmp_path
     assert [(r["lens"], r["field"]) for r in rows] == [
         ("fused", "none"), ("unfused", "none"), ("fused", "mode=view kernel_sizes=(5, 9)"),
     ]  # fmt: skip
+    slack = rss_resolution_mb()  # a 40x24 step touches almost nothing: its extra peak is 0 to the counters' resolution
     for row in rows:
-        assert row["status"] == "ok" and float(row["extra_peak_mb"]) >= 0 and float(row["forward_s"]) > 0, row
+        assert row["status"] == "ok" and float(row["extra_peak_mb"]) >= -slack and float(row["forward_s"]) > 0, row
+        assert float(row["extra_peak_mb"]) < 64, row
         assert row["method"] in ("VmHWM after clear_refs", "ru_maxrss")
     markdown = (out / "results.md").read_text()
     assert "gsmsdr-bench memory --lens fused --sizes 40x24" in markdown and markdown.count("| 40x24 |") == 3
@@ -68,10 +71,20 @@ def test_extra_peak_memory_counts_what_the_span_touched_from_the_resident_set_at
     from gsmsdr_ns.bench.timing import PeakMemory
 
     peak = PeakMemory()
-    for _ in range(20):  # nothing allocated: never below zero (the baseline and the peak share one counter)
+    for _ in range(20):  # nothing allocated: 0 to the resolution (the baseline and the peak share one counter)
         peak.reset()
-        assert peak.extra_rss_mb() >= 0, (peak.baseline_mb, peak.peak_rss_mb())
+        assert abs(peak.extra_rss_mb()) <= rss_resolution_mb(), (peak.baseline_mb, peak.peak_rss_mb())
     peak.reset()
     touched = np.ones(64 * 2**20 // 8)  # 64 MiB, every page written
     assert peak.extra_rss_mb() >= 60, (peak.baseline_mb, peak.peak_rss_mb())
     del touched
+
+
+def test_the_table_shows_a_read_within_the_counters_resolution_below_zero_as_zero():
+    row = dict(size="40x24", lens="fused", field="none", status="ok", extra_peak_mb="-0.23828125", forward_s="0.01",
+               backward_s="0.02", setup_rss_mb="400", setup_vm_mb="3000", limit_gb="10")  # fmt: skip
+    over = dict(row, status="> limit", extra_peak_mb="")
+    table = format_table([row, dict(row, lens="unfused", extra_peak_mb="12.6"), over])
+    assert "| 40x24 | fused | none | 0 | 0.01 |" in table and "| 40x24 | unfused | none | 13 |" in table
+    assert "| 40x24 | fused | none | > 10 GB |" in table
+    assert 0.25 <= rss_resolution_mb() < 64

@@ -13,7 +13,9 @@ with an allocation error, reported as "> limit", instead of pushing a shared mac
 the field, warms everything up on a small image (extension loaded, thread pool started), allocates the inputs,
 resets the high-water mark (``echo 5 > /proc/self/clear_refs``) and reads it (VmHWM, now the resident set), runs
 forward and backward and reads it again. Extra peak = VmHWM after - VmHWM before the run: every page the step
-touched on top of the inputs and the parameters, gradients included. Where clear_refs is not writable the child
+touched on top of the inputs and the parameters, gradients included, to within ``rss_resolution_mb`` (the kernel
+counts pages per CPU; results.csv keeps the raw difference, which can be a fraction of a MiB below 0 for a step
+that touches almost nothing, and the table shows that as 0). Where clear_refs is not writable the child
 falls back to ``ru_maxrss`` minus VmRSS at the reset (an upper bound: the warm-up counts too). The limit counts
 address space, not resident memory: the imports and the thread pools already reserve a few GB of it (the "set-up
 address space" column), so the memory left for the step is the limit minus that.
@@ -253,7 +255,7 @@ def run_memory_benchmark(
 def format_cell(row: Mapping[str, Any]) -> str:
     if row["status"] != "ok":
         return f"> {row['limit_gb']} GB" if row["status"] == "> limit" else str(row["status"])
-    return f"{float(row['extra_peak_mb']):.0f} MiB"
+    return f"{max(float(row['extra_peak_mb']), 0.0):.0f} MiB"  # a read within the counters' resolution below 0
 
 
 def merge_rows(old: Sequence[Mapping[str, Any]], new: Sequence[Mapping[str, Any]]) -> List[Dict[str, Any]]:
@@ -274,7 +276,7 @@ def format_table(rows: Sequence[Mapping[str, Any]], header: str = "") -> str:
         "|---|---|---|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
-        peak = number(r["extra_peak_mb"], ".0f") if r["status"] == "ok" else format_cell(r)
+        peak = format_cell(r).removesuffix(" MiB")
         lines.append(f"| {r['size']} | {r['lens']} | {r['field']} | {peak} | {number(r['forward_s'], '.2f')} | "
                      f"{number(r['backward_s'], '.2f')} | {number(r['setup_rss_mb'], '.0f')} | "
                      f"{number(r['setup_vm_mb'], '.0f')} |")  # fmt: skip
@@ -311,8 +313,11 @@ def table_header(kernel_size: int, limit_gb: float, threads: int = 0, command: O
     info = machine_info()
     if threads:
         info["torch_threads"] = threads  # the measuring processes' setting
+    from gsmsdr_ns.bench.timing import rss_resolution_mb
+
     text = (f"Thin lens + blur field, forward and backward, B = 1, K = {kernel_size}, float32; extra peak RSS per "
-            f"fresh process under a {limit_gb:g} GB address-space limit. Latest run: {describe_machine(info)}, git "
+            f"fresh process under a {limit_gb:g} GB address-space limit, to within {rss_resolution_mb():.1f} MiB "
+            f"(the kernel's per-CPU page counters). Latest run: {describe_machine(info)}, git "
             f"{info.get('git')}.")  # fmt: skip
     return text + (f"\n\n`{command}`\n" if command else "")
 
