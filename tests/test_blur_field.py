@@ -1,14 +1,12 @@
 """Tests of gsmsdr_ns.blur (MAAN, HPKO, BlurField, DegradationProfile, ResolutionLossModel) on CPU, no nerfstudio.
 
-Images are tiny (<= 32 x 48) except in the size/timing report (150 x 100), which prints and asserts nothing about
-speed. Run ``pytest tests/test_blur_field.py -s -k report`` to see parameter counts and timings.
+Images are tiny (<= 32 x 48). Time and memory per configuration are measured by ``gsmsdr-bench memory``, not here.
 """
 
 from __future__ import annotations
 
 import subprocess
 import sys
-import time
 
 import pytest
 import torch
@@ -558,36 +556,6 @@ def test_float64_field():
     weights, mask = f(render.double(), depth.double(), view_ids, 3)
     assert weights.dtype == mask.dtype == torch.float64
     torch.testing.assert_close(weights.sum(1), torch.ones(2, 8, 12, dtype=torch.float64))
-
-
-# ------------------------------------------------------------------------------------------------ report
-
-
-def test_report_parameter_counts_and_timing_150x100():
-    """Prints parameter counts and a forward+backward time at 150 x 100 (full resolution, K = 17).
-
-    Timed single-threaded (stable on a shared 2-core CPU, where two threads often run slower), one warm-up round,
-    then the configs in turns (2 rounds), best time kept. Nothing is asserted about speed.
-    """
-    render, depth, view_ids = inputs(B=1, H=100, W=150)
-    configs = {"full": {}, "lite": {"size": "lite"}, "msd_only": {"mode": "msd_only"}, "re_only": {"mode": "re_only"}}
-    fields = {name: field(**kw) for name, kw in configs.items()}
-    best = {name: float("inf") for name in fields}
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        for round_ in range(3):
-            for name, f in fields.items():
-                t0 = time.perf_counter()
-                w, m = f(render, depth, view_ids, 1)
-                f.degrade(render, w, m).mean().backward()
-                if round_ > 0:
-                    best[name] = min(best[name], time.perf_counter() - t0)
-    finally:
-        torch.set_num_threads(threads)
-    rows = [f"{n:9s} params {num_params(f):7d}  fwd+bwd 150x100 K=17, 1 thread: {best[n] * 1e3:6.0f} ms" for n, f in
-            fields.items()]  # fmt: skip
-    print("\n" + "\n".join(rows))
 
 
 # ------------------------------------------------------------------------------------------------ per-view kernels
