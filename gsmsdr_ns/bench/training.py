@@ -75,7 +75,7 @@ class InProcessRun:
             loss, loss_dict, _ = trainer.train_iteration(step)
             for callback in trainer.callbacks:
                 callback.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
-            if not math.isfinite(float(loss)):
+            if not math.isfinite(float(loss.detach())):
                 raise FloatingPointError(f"non-finite loss at step {step}: {loss_dict}")
             self.step += 1
         self.train_seconds += time.perf_counter() - started

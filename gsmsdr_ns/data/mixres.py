@@ -56,7 +56,7 @@ def downscale_upscale(image: np.ndarray, factor: int) -> np.ndarray:
         raise ValueError(f"expected [H, W, C] uint8, got {image.dtype} {image.shape}")
     if factor == 1:
         return image.copy()
-    x = torch.from_numpy(image).permute(2, 0, 1)[None].to(torch.float32) / 255.0  # [1, C, H, W]
+    x = torch.tensor(image).permute(2, 0, 1)[None].to(torch.float32) / 255.0  # [1, C, H, W]; copied (may be read-only)
     full = apply_mixres(x, int(factor))
     return (full[0].permute(1, 2, 0).clamp(0.0, 1.0) * 255.0).round().to(torch.uint8).numpy()
 

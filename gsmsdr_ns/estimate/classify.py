@@ -55,6 +55,7 @@ image is compared with them.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import asdict, dataclass
 from typing import Literal, Optional, Sequence
 
@@ -255,6 +256,14 @@ def _confidence(value: float, threshold: float, scale: float) -> float:
     return float(min(1.0, abs(math.log(value / threshold)) / math.log(scale)))
 
 
+def _column_nanmedian(values: np.ndarray) -> np.ndarray:
+    """Median of values [n, bins] over n, NaN ignored -> [bins]; NaN where a bin has no value (an orientation with
+    no measured edge in any of the images is expected, so numpy's all-NaN warning is not passed on)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmedian(values, axis=0)
+
+
 def _orientation_spread(by_angle: np.ndarray, baseline: np.ndarray) -> float:
     """Spread (max - min) over edge orientations of by_angle [bins] relative to baseline [bins], both edge ratios
     (1: flat ramp): 0 when every orientation lost the same share of its steepness, as under defocus."""
@@ -273,7 +282,7 @@ def _content_anisotropy(by_angle: np.ndarray, sharp_idx: list[int]) -> float:
     spreads = []
     for i in sharp_idx:
         others = [j for j in sharp_idx if j != i]
-        spreads.append(_orientation_spread(by_angle[i], np.nanmedian(by_angle[others], axis=0)))
+        spreads.append(_orientation_spread(by_angle[i], _column_nanmedian(by_angle[others])))
     return float(np.median(spreads))
 
 
@@ -480,7 +489,7 @@ def set_evidence(feats: Sequence[ImageFeatures], config: Optional[EstimateConfig
     with np.errstate(invalid="ignore"):
         soft = soft_width > cfg.soft_width_ratio  # NaN: no evidence either way
     by_angle = np.stack([f.edge_ratio_by_angle for f in feats])  # [n, bins]
-    ref_angle = np.nanmedian(by_angle[ref], axis=0)
+    ref_angle = _column_nanmedian(by_angle[ref])
     sharp_idx = [i for i in range(n) if sharp[i] >= cfg.sharp_threshold and not soft[i]]
     isotropy, detail_spread = _detail_evidence(feats, ref, sharp_idx)
     return SetEvidence(
