@@ -15,13 +15,17 @@ CONFIG_KINDS = ("bench", "degrade", "synth")
 """Sub-folders of ``configs/``: benchmark suites, degradation presets, procedural scene presets."""
 
 
+def config_root() -> Path:
+    """The packaged ``configs`` folder."""
+    # a regular install or checkout: a real folder (no zip import is supported for the package's data files)
+    return Path(str(resources.files("gsmsdr_ns").joinpath("configs")))
+
+
 def config_dir(kind: str) -> Path:
     """The packaged ``configs/<kind>`` folder."""
     if kind not in CONFIG_KINDS:
         raise ValueError(f"unknown config kind {kind!r}; valid: {', '.join(CONFIG_KINDS)}")
-    folder = resources.files("gsmsdr_ns").joinpath("configs", kind)
-    # a regular install or checkout: a real folder (no zip import is supported for the package's data files)
-    return Path(str(folder))
+    return config_root() / kind
 
 
 def config_names(kind: str) -> List[str]:
@@ -39,4 +43,4 @@ def config_file(kind: str, name: str) -> Path:
     return path
 
 
-__all__ = ["CONFIG_KINDS", "config_dir", "config_file", "config_names"]
+__all__ = ["CONFIG_KINDS", "config_dir", "config_file", "config_names", "config_root"]

@@ -41,3 +41,20 @@ def test_seed_spread_and_paired_gaps(tmp_path: Path) -> None:
     cells = [c.strip() for c in gap_row.strip("|").split("|")]
     assert cells[2] == "+1.17"  # difference of the seed means
     assert cells[-1] == "+0.50 .. +2.00"  # paired by seed, not the spread of the means
+
+
+def test_the_header_names_a_packaged_suite_by_its_configs_path_from_any_working_directory(tmp_path, monkeypatch):
+    from gsmsdr_ns.bench.suite_config import find_suite_file
+
+    packaged = load_suite(find_suite_file("quick"))
+    records = [_record(m, s) for (m, s) in PSNR]
+    monkeypatch.chdir(tmp_path)  # outside the checkout: the packaged file is not under the working directory
+    assert "- suite: `configs/bench/quick.yaml`" in format_markdown(packaged, records)
+    own = tmp_path / "mine" / "seeds.yaml"  # a suite file of the user's: relative to the working directory
+    own.parent.mkdir()
+    own.write_text(SUITE, encoding="utf8")
+    assert "- suite: `mine/seeds.yaml`" in format_markdown(load_suite(own), records)
+    elsewhere = tmp_path.parent / f"{tmp_path.name}-other"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)  # neither: the path as given
+    assert f"- suite: `{own}`" in format_markdown(load_suite(own), records)

@@ -303,13 +303,19 @@ def _gap_table(suite: Suite, agg: _Aggregate, records: Sequence[Mapping[str, Any
 
 
 def _display_path(path: Optional[Path]) -> str:
-    """``path`` relative to the working directory when it is inside it."""
+    """``path`` relative to the working directory when it is inside it, else ``configs/...`` for a packaged config
+    (wherever the package is installed), else as given."""
+    from gsmsdr_ns.resources import config_root
+
     if path is None:
         return "-"
-    try:
-        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
-    except ValueError:
-        return str(path)
+    resolved = Path(path).resolve()
+    for base, prefix in ((Path.cwd(), ""), (config_root(), "configs/")):
+        try:
+            return prefix + resolved.relative_to(base.resolve()).as_posix()
+        except ValueError:
+            continue
+    return str(path)
 
 
 def _sign(value: float, digits: int = 2) -> str:
