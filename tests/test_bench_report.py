@@ -58,3 +58,15 @@ def test_the_header_names_a_packaged_suite_by_its_configs_path_from_any_working_
     elsewhere.mkdir()
     monkeypatch.chdir(elsewhere)  # neither: the path as given
     assert f"- suite: `{own}`" in format_markdown(load_suite(own), records)
+
+
+def test_the_header_says_at_which_commits_reused_records_were_trained(tmp_path):
+    path = tmp_path / "seeds.yaml"
+    path.write_text(SUITE, encoding="utf8")
+    suite = load_suite(path)
+    machine = {"cpu": "AMD EPYC", "cores": 2, "torch": "2.14.1", "torch_threads": 1, "device": "cpu", "git": "bbbbbbb"}
+    records = [dict(_record(m, s), machine=dict(machine, git="aaaaaaa" if s else "bbbbbbb")) for (m, s) in PSNR]
+    text = format_markdown(suite, records, machine=machine)
+    assert "git bbbbbbb" in text and "- runs trained at git aaaaaaa (4), bbbbbbb (2)" in text
+    same = [dict(r, machine=machine) for r in records]  # every run trained by the code that writes the table
+    assert "runs trained at git" not in format_markdown(suite, same, machine=machine)

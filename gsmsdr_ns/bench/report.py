@@ -4,6 +4,7 @@ files into a results folder such as ``docs/results/<suite>/``."""
 
 from __future__ import annotations
 
+import collections
 import csv
 import datetime
 import io
@@ -123,6 +124,9 @@ def _header_lines(
     others = sorted({describe_machine(r["machine"]) for r in records if r.get("machine")} - {describe_machine(machine)})
     if others:
         lines.append(f"- some records were measured on: {'; '.join(others)}")
+    trained = collections.Counter(r["machine"].get("git") or "-" for r in records if r.get("machine"))
+    if trained and set(trained) != {machine.get("git") or "-"}:  # records kept from runs at other commits
+        lines.append("- runs trained at git " + ", ".join(f"{g} ({n})" for g, n in sorted(trained.items())))
     if command:
         lines.append(f"- command: `{command}`")
     lines.append(f"- suite: `{_display_path(suite.source)}`" + (f": {suite.description}" if suite.description else ""))
