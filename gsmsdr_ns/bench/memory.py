@@ -309,12 +309,11 @@ def write_results(out: Path, rows: Sequence[Mapping[str, Any]], header: str) -> 
 def table_header(kernel_size: int, limit_gb: float, threads: int = 0, command: Optional[str] = None) -> str:
     """What the latest run measured, on what (the merged table may hold rows of earlier runs)."""
     from gsmsdr_ns.bench.machine import describe_machine, machine_info
+    from gsmsdr_ns.bench.timing import rss_resolution_mb
 
     info = machine_info()
     if threads:
         info["torch_threads"] = threads  # the measuring processes' setting
-    from gsmsdr_ns.bench.timing import rss_resolution_mb
-
     text = (f"Thin lens + blur field, forward and backward, B = 1, K = {kernel_size}, float32; extra peak RSS per "
             f"fresh process under a {limit_gb:g} GB address-space limit, to within {rss_resolution_mb():.1f} MiB "
             f"(the kernel's per-CPU page counters). Latest run: {describe_machine(info)}, git "
