@@ -252,10 +252,15 @@ def run_memory_benchmark(
     return rows
 
 
+def _extra_peak(row: Mapping[str, Any]) -> str:
+    """The extra peak in whole MiB; a read below 0 (within the counters' resolution) shows as 0."""
+    return f"{max(float(row['extra_peak_mb']), 0.0):.0f}"
+
+
 def format_cell(row: Mapping[str, Any]) -> str:
     if row["status"] != "ok":
         return f"> {row['limit_gb']} GB" if row["status"] == "> limit" else str(row["status"])
-    return f"{max(float(row['extra_peak_mb']), 0.0):.0f} MiB"  # a read within the counters' resolution below 0
+    return f"{_extra_peak(row)} MiB"
 
 
 def merge_rows(old: Sequence[Mapping[str, Any]], new: Sequence[Mapping[str, Any]]) -> List[Dict[str, Any]]:
@@ -276,7 +281,7 @@ def format_table(rows: Sequence[Mapping[str, Any]], header: str = "") -> str:
         "|---|---|---|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
-        peak = format_cell(r).removesuffix(" MiB")
+        peak = _extra_peak(r) if r["status"] == "ok" else format_cell(r)
         lines.append(f"| {r['size']} | {r['lens']} | {r['field']} | {peak} | {number(r['forward_s'], '.2f')} | "
                      f"{number(r['backward_s'], '.2f')} | {number(r['setup_rss_mb'], '.0f')} | "
                      f"{number(r['setup_vm_mb'], '.0f')} |")  # fmt: skip

@@ -17,6 +17,7 @@ from gsmsdr_ns.bench.methods import METHODS, TABLE6_METHODS, TABLE7_METHODS
 from gsmsdr_ns.bench.records import copy_file_atomic, write_text_atomic
 from gsmsdr_ns.bench.suite_config import Suite, schedule_settings
 from gsmsdr_ns.bench.timing import CATEGORIES
+from gsmsdr_ns.resources import config_root
 
 CSV_FIELDS = ("suite", "scene", "method", "steps", "seed", "psnr", "ssim", "lpips", "train_seconds", "step_ms",
               *(f"t_{c}" for c in CATEGORIES), "peak_rss_mb", "peak_cuda_mb", "num_gaussians", "eval_seconds",
@@ -309,8 +310,6 @@ def _gap_table(suite: Suite, agg: _Aggregate, records: Sequence[Mapping[str, Any
 def _display_path(path: Optional[Path]) -> str:
     """``path`` relative to the working directory when it is inside it, else ``configs/...`` for a packaged config
     (wherever the package is installed), else as given."""
-    from gsmsdr_ns.resources import config_root
-
     if path is None:
         return "-"
     resolved = Path(path).resolve()

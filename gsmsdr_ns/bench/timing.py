@@ -306,14 +306,15 @@ class PeakMemory:
         self.baseline_mb = float("nan")  # resident set at reset, from the counter peak_rss_mb reads
 
     def reset(self) -> None:
+        baseline = None
         try:
             with open("/proc/self/clear_refs", "w") as f:
                 f.write("5")
-            self.span_reset = self._vmhwm_mb() is not None
+            # Read after the reset: an RSS read before it can sit pages above the new high-water mark.
+            baseline = self._vmhwm_mb()
         except OSError:
-            self.span_reset = False
-        # Read after the reset: an RSS read before it can sit pages above the new high-water mark.
-        baseline = self._vmhwm_mb() if self.span_reset else None
+            pass
+        self.span_reset = baseline is not None
         if baseline is None:
             try:
                 baseline = proc_status_kib("VmRSS") / 1024.0
