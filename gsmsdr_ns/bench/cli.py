@@ -125,6 +125,44 @@ class MemoryBench:
 
 
 @dataclass
+class StepBench:
+    """Training-step time and peak memory per method on scene folders, on the device training runs on (CUDA when
+    available): full resolution and the blur field from the first step, warm-up untimed, the device synchronised only
+    around the timed steps. Writes results.md / results.csv into --out. See gsmsdr_ns/bench/step_cost.py."""
+
+    data: Tuple[Path, ...]
+    """Scene folders (any layout the gsmsdr dataparser reads)."""
+    methods: Tuple[str, ...] = ("plain", "full")
+    """Bench methods (as in suite files); step-time ratios are to the first."""
+    warmup: int = 10
+    """Untimed steps before the timed ones."""
+    steps: int = 50
+    """Timed steps per method."""
+    estimate: bool = True
+    """Estimate a record for images without one (--no-estimate: nothing known about them, so every such image trains
+    with the blur field, the most expensive path)."""
+    out: Path = Path("bench-results") / "step"
+    """Folder of results.md and results.csv."""
+    work_dir: Path = Path(tempfile.gettempdir()) / "gsmsdr-bench-step"
+    """Trainer output folder (nothing is saved there but nerfstudio's config)."""
+
+    def main(self) -> None:
+        import shlex
+
+        from gsmsdr_ns.bench.machine import describe_machine, machine_info
+        from gsmsdr_ns.bench.step_cost import StepCostSpec, format_table, run_step_cost, write_results
+
+        specs = [StepCostSpec(m, d, self.warmup, self.steps, self.estimate) for d in self.data for m in self.methods]
+        rows = run_step_cost(specs, self.work_dir, log=print)
+        command = "gsmsdr-bench " + " ".join(shlex.quote(a) for a in _invocation_args())
+        header = (f"# Training-step cost per method\n\nCommand: `{command}`\n\nMachine: {describe_machine(machine_info())}"
+                  f"\n\n{self.warmup} untimed warm-up steps, then {self.steps} timed steps per method at full "
+                  "resolution with the blur field on from step 0; the device synchronised only around the timed steps.")
+        print(format_table(rows, header))
+        print("wrote " + ", ".join(str(p) for p in write_results(self.out, rows, header)))
+
+
+@dataclass
 class SuiteBench:
     """Run a benchmark suite (configs/bench/*.yaml: scenes x methods x step budgets x seeds) through nerfstudio's
     trainer; writes results.csv, results.md and PNG plots into --out. Finished runs are kept in <out>/runs/ and
@@ -236,6 +274,7 @@ SUBCOMMANDS = {
     "memory": MemoryBench,
     "suite": SuiteBench,
     "sfm": SfmBench,
+    "step": StepBench,
 }
 
 _ARGS: List[str] = []

@@ -1,0 +1,167 @@
+"""What one training step costs per method on one scene, on the device training runs on (``gsmsdr-bench step``).
+
+Each method trains through nerfstudio's Trainer (:class:`gsmsdr_ns.bench.training.InProcessRun`) at full resolution
+from the first step, with the blur field on from step 0, so every timed step is a full-size step of the method's
+whole path. ``warmup`` steps run first (untimed: kernel builds, caches, the first views), then ``steps`` timed steps.
+On CUDA the device is synchronised before and after the timed steps only, never inside them, so the time is what
+training costs and not what a profiler would add. Densification and culling run as in the preset: before its first
+refinement (splatfacto: step 500) every method trains the same Gaussians from the same points.
+
+Peak memory: on CUDA, torch's peak allocation over the timed steps (``torch.cuda.max_memory_allocated``, reset after
+the warm-up) and over the whole run; on the CPU, the peak resident set over the timed steps above the resident set
+at their start (:class:`gsmsdr_ns.bench.timing.PeakMemory`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Sequence
+
+import torch
+
+from gsmsdr_ns.io.atomic import write_text_atomic
+
+COLUMNS = ("method", "scene", "size", "records", "device", "warmup", "steps", "step_ms", "ratio_to_first",
+           "peak_mb", "run_peak_mb", "num_gaussians", "blurred_views")  # fmt: skip
+"""Columns of results.csv, in order (``ratio_to_first``: step time over the first method's on the same scene)."""
+
+
+@dataclass(frozen=True)
+class StepCostSpec:
+    """One measurement: a bench method on a scene folder."""
+
+    method: str
+    """A bench method (``gsmsdr_ns.bench.methods.METHODS``): plain, full, view, lite, ..."""
+    data: Path
+    """Scene folder (any layout the gsmsdr dataparser reads)."""
+    warmup: int = 10
+    """Untimed steps before the timed ones."""
+    steps: int = 50
+    """Timed steps."""
+    estimate: bool = True
+    """Estimate a record for images without one (False: nothing known about them; every such image then trains with
+    the blur field, the most expensive path)."""
+    seed: int = 0
+    """Training seed."""
+
+
+def _config(spec: StepCostSpec, work_dir: Path):
+    from gsmsdr_ns.bench.methods import method_spec
+
+    config = method_spec(spec.method).make_config(spec.data, work_dir)
+    config.experiment_name = f"step-{spec.method}"
+    config.max_num_iterations = spec.warmup + spec.steps
+    config.steps_per_save = 10**9
+    config.logging.steps_per_log = 10**9
+    config.logging.local_writer.enable = False
+    config.pipeline.datamanager.dataparser.estimate_degradations = spec.estimate
+    model = config.pipeline.model
+    model.num_downscales = 0  # full resolution (and the HPKO's full-size kernels) from the first step
+    model.blur_field = dataclasses.replace(model.blur_field, warmup=0)
+    return config
+
+
+def _synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def measure_step_cost(spec: StepCostSpec, work_dir: Path) -> Dict[str, object]:
+    """Train ``spec`` for its warm-up and timed steps and return one row of :data:`COLUMNS` (ratio not yet set)."""
+    from gsmsdr_ns.bench.timing import PeakMemory
+    from gsmsdr_ns.bench.training import InProcessRun
+
+    if spec.warmup < 1 or spec.steps < 1:
+        raise ValueError(f"warmup and steps must be >= 1, got {spec.warmup} and {spec.steps}")
+    memory = PeakMemory()
+    memory.reset()
+    run = InProcessRun(_config(spec, work_dir), seed=spec.seed)
+    try:
+        device = torch.device(run.trainer.device)
+        run.train(spec.warmup)
+        _synchronize(device)
+        run_peak = memory.peak_cuda_mb()
+        memory.reset()
+        started = time.perf_counter()
+        run.train(spec.steps)
+        _synchronize(device)
+        seconds = time.perf_counter() - started
+        run_peak = max(run_peak, memory.peak_cuda_mb())
+        peak = memory.peak_cuda_mb() if device.type == "cuda" else memory.extra_rss_mb()
+        model = run.model
+        cameras = run.pipeline.datamanager.train_dataparser_outputs.cameras
+        blurred = sum(1 for profile in model.profiles if profile.needs_blur_field)
+        gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else ""
+        return {
+            "method": spec.method,
+            "scene": Path(spec.data).name,
+            "size": f"{int(cameras.width[0])}x{int(cameras.height[0])}",
+            "records": "scene's, else estimated" if spec.estimate else "scene's, else none (blur path)",
+            "device": f"cuda ({gpu})" if gpu else device.type,
+            "warmup": spec.warmup,
+            "steps": spec.steps,
+            "step_ms": 1000.0 * seconds / spec.steps,
+            "ratio_to_first": float("nan"),
+            "peak_mb": peak,
+            "run_peak_mb": run_peak if device.type == "cuda" else float("nan"),
+            "num_gaussians": int(model.num_points),
+            "blurred_views": f"{blurred}/{len(model.profiles)}",
+        }
+    finally:
+        run.close()
+        if torch.cuda.is_available():
+            torch.cuda.empty_cache()
+
+
+def run_step_cost(
+    specs: Sequence[StepCostSpec], work_dir: Path, log: Optional[Callable[[str], None]] = None
+) -> List[Dict[str, object]]:
+    """Measure every spec in order; ``ratio_to_first`` is each row's step time over the first row of its scene."""
+    rows: List[Dict[str, object]] = []
+    first_ms: Dict[str, float] = {}
+    for spec in specs:
+        row = measure_step_cost(spec, work_dir)
+        key = f"{row['scene']}|{row['records']}"
+        first_ms.setdefault(key, float(row["step_ms"]))
+        row["ratio_to_first"] = float(row["step_ms"]) / first_ms[key]
+        rows.append(row)
+        if log is not None:
+            log(f"step: {row['scene']} {row['method']}: {row['step_ms']:.1f} ms/step, peak {row['peak_mb']:.0f} MiB")
+    return rows
+
+
+def format_table(rows: Sequence[Dict[str, object]], header: str = "") -> str:
+    """A markdown table of :func:`run_step_cost` rows, under ``header``."""
+    lines = [header, ""] if header else []
+    lines += ["| scene | size | records | method | ms/step | x first | peak MiB (timed) | peak MiB (run) | Gaussians "
+              "| views with a blur model |", "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        lines.append(
+            f"| {r['scene']} | {r['size']} | {r['records']} | {r['method']} | {float(r['step_ms']):.1f} "
+            f"| {float(r['ratio_to_first']):.2f} | {max(float(r['peak_mb']), 0.0):.0f} | {float(r['run_peak_mb']):.0f} "
+            f"| {r['num_gaussians']} | {r['blurred_views']} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def write_results(out: Path, rows: Sequence[Dict[str, object]], header: str) -> List[Path]:
+    """results.md and results.csv into ``out`` (each written atomically)."""
+    import csv
+    import io
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(COLUMNS), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows([{k: r[k] for k in COLUMNS} for r in rows])
+    paths = [out / "results.md", out / "results.csv"]
+    write_text_atomic(paths[0], format_table(rows, header))
+    write_text_atomic(paths[1], buffer.getvalue())
+    return paths
+
+
+__all__ = ["COLUMNS", "StepCostSpec", "format_table", "measure_step_cost", "run_step_cost", "write_results"]
