@@ -56,11 +56,10 @@ fi
 if has_stage install; then
   say "install: wheels from $GPU/wheels and the project into $SITE"
   t0=$(date +%s.%N)
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$SITE" \
-    "$GPU"/wheels/*.whl >> "$LOG" 2>&1 || say "install: wheels FAILED"
-  # the project itself, built by the device's setuptools (its entry points register the methods with nerfstudio)
+  # one pip call (a second --target install would replace the first one's bin/); the project is built by the
+  # device's setuptools, and its entry points register the methods with nerfstudio
   python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-compile --no-cache-dir --upgrade \
-    --target "$SITE" "$ROOT" >> "$LOG" 2>&1 || say "install: gsmsdr-ns FAILED"
+    --target "$SITE" "$GPU"/wheels/*.whl "$ROOT" >> "$LOG" 2>&1 || say "install: FAILED (see check.log)"
   say "install: done in $(seconds_since "$t0") s"
 fi
 
@@ -142,10 +141,10 @@ fi
 if has_stage step; then
   say "step: gsmsdr-bench step"
   (cd "$WORK" && timeout 300 gsmsdr-bench step --data "$GPU/scenes/motion-strong-600x400" \
-    --methods plain full view gsmsdr-lite --warmup 20 --steps 100 --out "$WORK/step-600x400" >> "$LOG" 2>&1) \
+    --methods plain full view gsmsdr-lite --warmup 20 --steps 100 --breakdown-steps 20 --out "$WORK/step-600x400" >> "$LOG" 2>&1) \
     || say "step: 600x400 FAILED"
   (cd "$WORK" && timeout 240 gsmsdr-bench step --data "$GPU/scenes/sharp-1297x840" --methods plain full \
-    --warmup 10 --steps 50 --no-estimate --out "$WORK/step-1297x840" >> "$LOG" 2>&1) || say "step: 1297x840 FAILED"
+    --warmup 10 --steps 50 --breakdown-steps 10 --no-estimate --out "$WORK/step-1297x840" >> "$LOG" 2>&1) || say "step: 1297x840 FAILED"
   for size in 600x400 1297x840; do
     if [ -f "$WORK/step-$size/results.md" ]; then
       result "$(sed 's/^# /## /' "$WORK/step-$size/results.md")"
@@ -157,35 +156,54 @@ if has_stage step; then
 fi
 
 if has_stage lite; then
+  # GSMSDR_GPU_LITE_PARALLEL=1: both trainings at the same time on the one GPU (half the device time; each one's
+  # wall time then includes the other's competition, which the table says). GSMSDR_GPU_LITE_ARGS: more ns-train
+  # arguments for both runs (a dry run of this stage on a CPU: "--max-num-iterations 5 --machine.device-type cpu")
+  parallel=${GSMSDR_GPU_LITE_PARALLEL:-0}
   scene=$GPU/scenes/motion-strong-160x120
   result "## \`ns-train gsmsdr-lite\` to the end of its schedule, against plain Gaussians"
   result ""
-  result "Scene: $(basename "$scene") (generated strong camera shake; sharp held-out test views). Each run alone on the GPU;"
-  result "wall time of the whole \`ns-train\` process (start-up included); PSNR / SSIM from \`ns-eval\` on the test views."
+  if [ "$parallel" = 1 ]; then how="both at the same time on the GPU"; else how="one after the other, each alone on the GPU"; fi
+  result "Scene: $(basename "$scene") (generated strong camera shake; sharp held-out test views). Runs: $how."
+  result "Wall time of the whole \`ns-train\` process (start-up included); PSNR / SSIM from \`ns-eval\` on the test views."
   result ""
   result "| run | command | wall s | PSNR | SSIM | LPIPS |"
   result "| --- | --- | ---: | ---: | ---: | ---: |"
-  for run in gsmsdr-lite plain; do
-    extra=()
-    [ "$run" = plain ] && extra=(--pipeline.model.degradation sharp)
-    command=(ns-train gsmsdr-lite --data "$scene" --output-dir "$WORK/runs" --experiment-name lite-vs-plain
-      --timestamp "$run" --vis tensorboard --steps-per-eval-image 0 --steps-per-eval-all-images 0
-      --steps-per-save 100000 "${extra[@]}")
-    say "lite: ${command[*]}"
+  train() {  # run name, extra arguments...; writes $WORK/train-<run>.{log,status,seconds}
+    local run=$1
+    shift
+    local t0
     t0=$(date +%s.%N)
-    (cd "$WORK" && timeout 420 "${command[@]}" > "$WORK/train-$run.log" 2>&1)
-    status=$?
-    wall=$(seconds_since "$t0")
+    (cd "$WORK" && timeout 480 ns-train gsmsdr-lite --data "$scene" --output-dir "$WORK/runs" \
+      --experiment-name lite-vs-plain --timestamp "$run" --vis tensorboard --steps-per-eval-image 0 \
+      --steps-per-eval-all-images 0 --steps-per-save 100000 ${GSMSDR_GPU_LITE_ARGS:-} "$@" > "$WORK/train-$run.log" 2>&1)
+    echo $? > "$WORK/train-$run.status"
+    seconds_since "$t0" > "$WORK/train-$run.seconds"
+  }
+  runs=(gsmsdr-lite plain)
+  say "lite: training ${runs[*]} ($how)"
+  if [ "$parallel" = 1 ]; then
+    train gsmsdr-lite &
+    train plain --pipeline.model.degradation sharp &
+    wait
+  else
+    train gsmsdr-lite
+    train plain --pipeline.model.degradation sharp
+  fi
+  for run in "${runs[@]}"; do
+    status=$(cat "$WORK/train-$run.status")
+    wall=$(cat "$WORK/train-$run.seconds")
     tail -5 "$WORK/train-$run.log" >> "$LOG"
-    config=$WORK/runs/lite-vs-plain/gsmsdr-lite/$run/config.yml
     metrics="FAILED (exit $status) | | |"
-    if [ $status -eq 0 ] && (cd "$WORK" && timeout 120 ns-eval --load-config "$config" \
+    config=$WORK/runs/lite-vs-plain/gsmsdr-lite/$run/config.yml
+    if [ "$status" = 0 ] && (cd "$WORK" && timeout 120 ns-eval --load-config "$config" \
          --output-path "$WORK/eval-$run.json" >> "$LOG" 2>&1); then
       metrics=$(python3 -c "import json, sys; r = json.load(open(sys.argv[1]))['results']; \
 print(f\"{r['psnr']:.2f} | {r['ssim']:.4f} | {r.get('lpips', float('nan')):.4f}\")" "$WORK/eval-$run.json")
     fi
-    shown="ns-train gsmsdr-lite --data $(basename "$scene") ${extra[*]}"
-    result "| $run | \`${shown% }\` | $wall | $metrics |"
+    extra=""
+    [ "$run" = plain ] && extra=" --pipeline.model.degradation sharp"
+    result "| $run | \`ns-train gsmsdr-lite --data $(basename "$scene")$extra\` | $wall | $metrics |"
     say "lite: $run exit $status in $wall s: $metrics"
   done
   result ""

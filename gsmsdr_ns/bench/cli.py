@@ -141,6 +141,8 @@ class StepBench:
     estimate: bool = True
     """Estimate a record for images without one (--no-estimate: nothing known about them, so every such image trains
     with the blur field, the most expensive path)."""
+    breakdown_steps: int = 0
+    """Steps after the timed ones with the time breakdown per stage (they wait for the device at every stage)."""
     out: Path = Path("bench-results") / "step"
     """Folder of results.md and results.csv."""
     work_dir: Path = Path(tempfile.gettempdir()) / "gsmsdr-bench-step"
@@ -152,7 +154,8 @@ class StepBench:
         from gsmsdr_ns.bench.machine import describe_machine, machine_info
         from gsmsdr_ns.bench.step_cost import StepCostSpec, format_table, run_step_cost, write_results
 
-        specs = [StepCostSpec(m, d, self.warmup, self.steps, self.estimate) for d in self.data for m in self.methods]
+        specs = [StepCostSpec(m, d, self.warmup, self.steps, self.estimate, breakdown_steps=self.breakdown_steps)
+                 for d in self.data for m in self.methods]  # fmt: skip
         rows = run_step_cost(specs, self.work_dir, log=print)
         command = "gsmsdr-bench " + " ".join(shlex.quote(a) for a in _invocation_args())
         header = (f"# Training-step cost per method\n\nCommand: `{command}`\n\nMachine: {describe_machine(machine_info())}"

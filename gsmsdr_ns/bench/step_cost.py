@@ -25,7 +25,7 @@ import torch
 from gsmsdr_ns.io.atomic import write_text_atomic
 
 COLUMNS = ("method", "scene", "size", "records", "device", "warmup", "steps", "step_ms", "ratio_to_first",
-           "peak_mb", "run_peak_mb", "num_gaussians", "blurred_views")  # fmt: skip
+           "peak_mb", "run_peak_mb", "num_gaussians", "blurred_views", "breakdown_steps", "breakdown_ms")  # fmt: skip
 """Columns of results.csv, in order (``ratio_to_first``: step time over the first method's on the same scene)."""
 
 
@@ -46,6 +46,9 @@ class StepCostSpec:
     the blur field, the most expensive path)."""
     seed: int = 0
     """Training seed."""
+    breakdown_steps: int = 0
+    """Steps run after the timed ones with the bench's time breakdown (:class:`TimingRecorder`, which waits for the
+    device at every stage boundary, so these steps are slower than the timed ones): ms per step per stage."""
 
 
 def _config(spec: StepCostSpec, work_dir: Path):
@@ -71,7 +74,7 @@ def _synchronize(device: torch.device) -> None:
 
 def measure_step_cost(spec: StepCostSpec, work_dir: Path) -> Dict[str, object]:
     """Train ``spec`` for its warm-up and timed steps and return one row of :data:`COLUMNS` (ratio not yet set)."""
-    from gsmsdr_ns.bench.timing import PeakMemory
+    from gsmsdr_ns.bench.timing import PeakMemory, TimingRecorder
     from gsmsdr_ns.bench.training import InProcessRun
 
     if spec.warmup < 1 or spec.steps < 1:
@@ -91,6 +94,15 @@ def measure_step_cost(spec: StepCostSpec, work_dir: Path) -> Dict[str, object]:
         seconds = time.perf_counter() - started
         run_peak = max(run_peak, memory.peak_cuda_mb())
         peak = memory.peak_cuda_mb() if device.type == "cuda" else memory.extra_rss_mb()
+        breakdown = {}
+        if spec.breakdown_steps > 0:
+            recorder = TimingRecorder(sync_cuda=device.type == "cuda").attach(run.pipeline)
+            try:
+                with recorder.measure():
+                    run.train(spec.breakdown_steps)
+            finally:
+                recorder.detach()
+            breakdown = {k: 1000.0 * v / spec.breakdown_steps for k, v in recorder.totals().items()}
         model = run.model
         cameras = run.pipeline.datamanager.train_dataparser_outputs.cameras
         blurred = sum(1 for profile in model.profiles if profile.needs_blur_field)
@@ -109,6 +121,8 @@ def measure_step_cost(spec: StepCostSpec, work_dir: Path) -> Dict[str, object]:
             "run_peak_mb": run_peak if device.type == "cuda" else float("nan"),
             "num_gaussians": int(model.num_points),
             "blurred_views": f"{blurred}/{len(model.profiles)}",
+            "breakdown_steps": spec.breakdown_steps,
+            "breakdown_ms": " ".join(f"{k}={v:.2f}" for k, v in breakdown.items()),
         }
     finally:
         run.close()
@@ -144,6 +158,11 @@ def format_table(rows: Sequence[Dict[str, object]], header: str = "") -> str:
             f"| {float(r['ratio_to_first']):.2f} | {max(float(r['peak_mb']), 0.0):.0f} | {float(r['run_peak_mb']):.0f} "
             f"| {r['num_gaussians']} | {r['blurred_views']} |"
         )
+    broken_down = [r for r in rows if r.get("breakdown_ms")]
+    if broken_down:
+        lines += ["", f"Time breakdown (ms per step over {broken_down[0]['breakdown_steps']} more steps, the device "
+                  "synchronised at every stage boundary):", ""]
+        lines += [f"- {r['scene']} {r['method']}: {r['breakdown_ms']}" for r in broken_down]
     return "\n".join(lines) + "\n"
 
 

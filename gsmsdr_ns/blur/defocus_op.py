@@ -53,15 +53,23 @@ def _check(image: Tensor, radius: Tensor, inverse_depth: Tensor, kernel_size: in
             raise ValueError(f"image and {name}: expected the same device, got {image.device} and {x.device}")
 
 
-class _Tap:
-    """One window offset (i, j) of the fused op in PyTorch: [B, 1, H, W] views and the tap's weight terms."""
+def _tap_constants(K: int, softness: float, dtype: torch.dtype, device: torch.device) -> Tuple[Tensor, Tensor]:
+    """[K*K] distance of every window offset from the centre and the coverage of an empty disk there, built on the
+    device (a tensor made from Python numbers would be a host-to-device copy per call)."""
+    offsets = torch.arange(K, dtype=dtype, device=device) - K // 2
+    distance = torch.hypot(offsets[:, None], offsets[None, :]).reshape(-1)
+    return distance, torch.sigmoid(-distance / softness)
 
-    def __init__(self, K: int, i: int, j: int, softness: float, dtype: torch.dtype, device: torch.device) -> None:
+
+class _Tap:
+    """One window offset (i, j) of the fused op in PyTorch: its distance and empty-disk coverage (0-dim views of
+    :func:`_tap_constants`)."""
+
+    def __init__(self, K: int, i: int, j: int, constants: Tuple[Tensor, Tensor]) -> None:
         p = K // 2
-        distance = torch.tensor(float(math.hypot(i - p, j - p)), dtype=dtype, device=device)
         self.centre = i == p and j == p
-        self.distance = distance
-        self.base = torch.sigmoid(-distance / softness)  # coverage of an empty disk, subtracted: radius 0 is sharp
+        self.distance = constants[0][i * K + j]
+        self.base = constants[1][i * K + j]  # subtracted from the coverage: radius 0 is sharp
 
 
 def _tap_terms(
@@ -112,10 +120,11 @@ class _DiskDefocusTorch(torch.autograd.Function):
         depth_p = F.pad(inverse_depth, pad, mode="replicate")
         total = torch.zeros_like(image, memory_format=torch.contiguous_format)
         weight_sum = torch.zeros_like(radius, memory_format=torch.contiguous_format)
+        constants = _tap_constants(K, softness, image.dtype, image.device)
         with torch.no_grad():
             for i in range(K):
                 for j in range(K):
-                    tap = _Tap(K, i, j, softness, image.dtype, image.device)
+                    tap = _Tap(K, i, j, constants)
                     window = (..., slice(i, i + H), slice(j, j + W))
                     u = _tap_terms(radius_p[window], depth_p[window], radius, inverse_depth, tap, softness,
                                    occlusion, False)[0]  # fmt: skip
@@ -142,9 +151,10 @@ class _DiskDefocusTorch(torch.autograd.Function):
         grad_image_p = image.new_zeros(B, C, H + 2 * p, W + 2 * p) if need_image else None
         grad_radius_p = radius.new_zeros(B, 1, H + 2 * p, W + 2 * p) if need_radius and occlusion else None
         grad_radius_own = torch.zeros_like(radius) if need_radius else None
+        constants = _tap_constants(K, softness, image.dtype, image.device)
         for i in range(K):
             for j in range(K):
-                tap = _Tap(K, i, j, softness, image.dtype, image.device)
+                tap = _Tap(K, i, j, constants)
                 window = (..., slice(i, i + H), slice(j, j + W))
                 r_q = radius_p[window]
                 u, cov, sig, area, dreach_q, dreach_p = _tap_terms(

@@ -94,12 +94,25 @@ def _replicate_pad_adjoint(grad_padded: Tensor, p: int) -> Tensor:
     return out
 
 
-class _PixelKernelsTorch(torch.autograd.Function):
-    """Device-agnostic twin: loops over the K*K offsets, one strided view of the padded image at a time.
+def _kernel_row_windows(padded: Tensor, i: int, H: int, W: int, K: int) -> Tensor:
+    """[B, C, H, W, K] view (no copy) of the K taps of kernel row ``i`` at every pixel: entry (.., y, x, j) is
+    ``padded[.., y + i, x + j]``."""
+    return padded[:, :, i : i + H, :].unfold(3, K, 1)
 
-    Extra memory: the padded image, one [B, C, H, W] temporary and the padded image gradient, besides the outputs.
-    Each offset is a separate op; on a CPU shared with other processes every op's OpenMP barrier can stall, which
-    is why CPU tensors normally take the C++ kernel.
+
+def _kernel_row_weights(weights: Tensor, i: int, K: int) -> Tensor:
+    """[B, 1, H, W, K] view of the weights of kernel row ``i`` (entry j: ``weights[:, i * K + j]``)."""
+    return weights[:, i * K : (i + 1) * K].permute(0, 2, 3, 1).unsqueeze(1)
+
+
+class _PixelKernelsTorch(torch.autograd.Function):
+    """Device-agnostic twin, one kernel row at a time: a strided [B, C, H, W, K] view of the padded image holds the
+    row's K taps at every pixel, so a K x K kernel costs K broadcast products and reductions (a few dozen device
+    kernels at K = 17) instead of K*K shifted ones; the backward folds each row's products back with ``F.fold``.
+
+    Extra memory: the padded image and, per kernel row at a time, [B, C, H, W, K] products (K / 3 times the
+    [B, K*K, H, W] weights over K rows for RGB); the padded image gradient in the backward. On CPUs, where each op's
+    OpenMP barrier can stall on a shared machine, CPU tensors normally take the C++ kernel instead.
     """
 
     @staticmethod
@@ -109,9 +122,7 @@ class _PixelKernelsTorch(torch.autograd.Function):
         padded = F.pad(image, (p, p, p, p), mode="replicate")  # [B, C, H+2p, W+2p]
         out = torch.zeros_like(image, memory_format=torch.contiguous_format)
         for i in range(K):
-            for j in range(K):
-                k = i * K + j
-                out.addcmul_(padded[:, :, i : i + H, j : j + W], weights[:, k : k + 1])
+            out += (_kernel_row_windows(padded, i, H, W, K) * _kernel_row_weights(weights, i, K)).sum(-1)
         ctx.K = K
         ctx.save_for_backward(image, weights)
         return out
@@ -123,25 +134,23 @@ class _PixelKernelsTorch(torch.autograd.Function):
         K = ctx.K
         B, C, H, W = image.shape
         p = K // 2
+        grad_out = grad_out.contiguous()
         grad_image = grad_weights = None
         if ctx.needs_input_grad[1]:
-            # grad_weights[:, k] = sum_c grad_out[:, c] * shifted_k(image)[:, c]
+            # grad_weights[:, i*K + j] = sum_c grad_out[:, c] * padded[:, c, y + i, x + j]
             padded = F.pad(image, (p, p, p, p), mode="replicate")
             grad_weights = torch.empty_like(weights, memory_format=torch.contiguous_format)
             for i in range(K):
-                for j in range(K):
-                    shifted = padded[:, :, i : i + H, j : j + W]
-                    dst = grad_weights[:, i * K + j]  # [B, H, W]
-                    torch.mul(grad_out[:, 0], shifted[:, 0], out=dst)
-                    for c in range(1, C):
-                        dst.addcmul_(grad_out[:, c], shifted[:, c])
+                row = (grad_out.unsqueeze(-1) * _kernel_row_windows(padded, i, H, W, K)).sum(1)  # [B, H, W, K]
+                grad_weights[:, i * K : (i + 1) * K] = row.permute(0, 3, 1, 2)
         if ctx.needs_input_grad[0]:
-            # shift every grad_out * weights[:, k] back into a padded buffer, then fold its margins onto the border
+            # grad_padded[:, :, y + i, x + j] += grad_out[:, :, y, x] * weights[:, i*K + j, y, x]: per kernel row,
+            # F.fold sums the K products of every pixel into the K columns they came from
             grad_padded = image.new_zeros(B, C, H + 2 * p, W + 2 * p)
             for i in range(K):
-                for j in range(K):
-                    k = i * K + j
-                    grad_padded[:, :, i : i + H, j : j + W].addcmul_(grad_out, weights[:, k : k + 1])
+                products = grad_out.unsqueeze(-1) * _kernel_row_weights(weights, i, K)  # [B, C, H, W, K]
+                columns = products.permute(0, 1, 4, 2, 3).reshape(B, C * K, H * W)
+                grad_padded[:, :, i : i + H, :] += F.fold(columns, (H, W + 2 * p), kernel_size=(1, K))
             grad_image = _replicate_pad_adjoint(grad_padded, p)
         return grad_image, grad_weights, None
 

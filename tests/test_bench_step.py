@@ -1,0 +1,56 @@
+"""``gsmsdr-bench step``: training-step time and peak memory per method through nerfstudio's trainer, on a tiny
+generated motion scene on the CPU (the GPU check runs the same command on CUDA)."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+
+from gsmsdr_ns.bench.cli import entrypoint
+from gsmsdr_ns.bench.step_cost import COLUMNS, StepCostSpec, measure_step_cost
+
+
+@pytest.fixture(scope="module")
+def motion_scene(tmp_path_factory) -> Path:
+    from gsmsdr_ns.bench.scenes import SceneSpec, ensure_scene
+
+    spec = SceneSpec("motion", 40, 30, num_views=6, hold=6, num_points=200)
+    return ensure_scene(tmp_path_factory.mktemp("step"), spec)
+
+
+def test_the_command_times_every_method_and_writes_its_table(motion_scene, tmp_path, capsys):
+    out = tmp_path / "out"
+    entrypoint(["step", "--data", str(motion_scene), "--methods", "plain", "full", "--warmup", "1", "--steps", "2",
+                "--breakdown-steps", "1", "--out", str(out), "--work-dir", str(tmp_path / "work")])  # fmt: skip
+    printed = capsys.readouterr().out
+    assert "Command: `gsmsdr-bench step --data" in printed and "device cpu" in printed
+    with open(out / "results.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["method"] for r in rows] == ["plain", "full"] and list(rows[0]) == list(COLUMNS)
+    plain, full = rows
+    assert float(plain["ratio_to_first"]) == 1.0
+    assert float(full["ratio_to_first"]) == pytest.approx(float(full["step_ms"]) / float(plain["step_ms"]))
+    assert all(float(r["step_ms"]) > 0 for r in rows)
+    # 5 training views, all motion-blurred: plain models none of them, full every one
+    assert plain["blurred_views"] == "0/5" and full["blurred_views"] == "5/5"
+    assert plain["size"] == "40x30" and plain["steps"] == "2" and plain["device"] == "cpu"
+    assert "blur_field=0.00" in plain["breakdown_ms"] and "blur_field=0.00" not in full["breakdown_ms"]
+    table = (out / "results.md").read_text()
+    assert "| plain | " in table and "| full | " in table and "Time breakdown" in table
+
+
+def test_no_estimate_trains_images_without_records_with_the_blur_field(motion_scene, tmp_path):
+    import shutil
+
+    scene = tmp_path / "no-records"
+    shutil.copytree(motion_scene, scene)
+    (scene / "degradation.json").unlink()
+    row = measure_step_cost(StepCostSpec("full", scene, warmup=1, steps=1, estimate=False), tmp_path / "work")
+    assert row["blurred_views"] == "5/5" and row["records"].startswith("scene's, else none")
+
+
+def test_bad_step_counts_are_refused(motion_scene, tmp_path):
+    with pytest.raises(ValueError, match="warmup and steps must be >= 1"):
+        measure_step_cost(StepCostSpec("plain", motion_scene, warmup=0, steps=1), tmp_path)
