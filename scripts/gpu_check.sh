@@ -82,7 +82,7 @@ for extension in (raster, pixel, grid, disk):
 EOF
   cpu_ext=$!
   t0=$(date +%s.%N)
-  python3 - > "$WORK/gsplat-build.log" 2>&1 <<'EOF'
+  timeout "${GSMSDR_GPU_BUILD_TIMEOUT:-330}" python3 - > "$WORK/gsplat-build.log" 2>&1 <<'EOF'
 import glob
 import os
 import sys
