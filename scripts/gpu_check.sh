@@ -117,7 +117,7 @@ fi
 if has_stage tests; then
   say "tests: pytest -m cuda tests/test_cuda.py"
   t0=$(date +%s.%N)
-  (cd "$ROOT" && timeout 480 python3 -m pytest -p no:cacheprovider -q -m cuda tests/test_cuda.py -rA -rP \
+  (cd "$ROOT" && timeout 480 python3 -m pytest -p no:cacheprovider -q -m cuda tests/test_cuda.py -rA \
     > "$OUT/cuda-tests.log" 2>&1)
   status=$?
   tests_s=$(seconds_since "$t0")
@@ -129,7 +129,7 @@ if has_stage tests; then
   result ""
   result "What the tests printed (errors against the CPU path; synchronising calls outside gsmsdr_ns):"
   result ""
-  result "$(grep -E '^(rgb|sh3|antialiased|gsmsdr|plain)[-:a-z+0-9]*:|per step:' "$OUT/cuda-tests.log" | sed 's/^/    /')"
+  result "$(grep -E '^(rgb|rgb-unpacked|sh3-rgb[+]ed|antialiased-background): image|^(gsmsdr|plain): (losses|[0-9]+ synchronising)|^  [0-9.]+ per step:' "$OUT/cuda-tests.log" | sed 's/^/    /')"
   result ""
   result "\`python tests/test_stability_autocast.py cuda\` (exit $autocast):"
   result ""

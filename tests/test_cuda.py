@@ -230,6 +230,9 @@ def _trainer(scene: Path, out: Path, device: str, plain: bool, max_steps: int = 
     config.machine.device_type = device
     config.machine.seed = 0
     config.pipeline.model.refine_every = 10_000
+    # splatfacto's "random" training background is drawn from the device's generator: CPU and CUDA draw different
+    # colours from the same seed (on the H200, step 0's loss differed by 5 % with it)
+    config.pipeline.model.background_color = "black"
     if plain:
         config.pipeline.model.degradation = "sharp"
     trainer = config.setup(local_rank=0, world_size=1)
@@ -254,9 +257,11 @@ def _first_step(trainer) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
 def test_a_training_step_matches_the_cpu_step(method, cuda_scene, tmp_path):
     """Step 0 from the same initial state (parameters are initialised on the CPU, then moved): the same losses
     within 1e-4 and the same gradients within 1e-3 relative, on every parameter that has one."""
-    torch.manual_seed(0)
+    from gsmsdr_ns.bench.training import seed_everything
+
+    seed_everything(0)
     losses_cpu, grads_cpu = _first_step(_trainer(cuda_scene, tmp_path / "cpu", "cpu", method == "plain"))
-    torch.manual_seed(0)
+    seed_everything(0)
     trainer = _trainer(cuda_scene, tmp_path / "cuda", "cuda", method == "plain")
     assert next(trainer.pipeline.model.parameters()).is_cuda
     losses_gpu, grads_gpu = _first_step(trainer)
@@ -324,8 +329,8 @@ def test_steady_state_steps_do_not_synchronise_in_our_code(method, cuda_scene, t
         warnings.showwarning = record
         torch.cuda.set_sync_debug_mode("warn")
         try:
-            torch.zeros(1, device=CUDA).item()  # a known sync: the recording works
-            assert len(seen) == 1, f"set_sync_debug_mode('warn') recorded {len(seen)} warnings for one .item()"
+            torch.zeros(1, device=CUDA).item()  # a known sync: the recording works (on the H200 one .item() was
+            assert seen, "set_sync_debug_mode('warn') recorded nothing for an .item()"  # recorded once or twice)
             seen.clear()
             for step in RECORDED_STEPS:
                 metrics = run_step(trainer, step)

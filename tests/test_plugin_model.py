@@ -107,6 +107,15 @@ def test_intrinsics_match_nerfstudio_rescaling_without_mutating(downscale):
     assert (width, height) == (reference.width.item(), reference.height.item())
 
 
+def test_intrinsics_are_built_on_the_cameras_device_without_a_host_copy():
+    """On a GPU the camera of a training step lives on the device; its intrinsics must not round-trip through the
+    host (nerfstudio's get_intrinsics_matrices fills a CPU matrix). The meta device has no data to copy, so any
+    host round trip fails here."""
+    camera = make_camera(look_from([2.0, 0.0, 1.0]), width=37, height=23).to("meta")
+    K, width, height = intrinsics_at_scale(camera, 2, torch.device("meta"), full_size=(37, 23))
+    assert K.device.type == "meta" and K.shape == (1, 3, 3) and (width, height) == (18, 11)
+
+
 # -- construction ------------------------------------------------------------------------------------------------
 
 

@@ -145,7 +145,11 @@ def intrinsics_at_scale(
     Returns:
         K: [1, 3, 3] on ``device``; width; height.
     """
-    K = camera.get_intrinsics_matrices().reshape(-1, 3, 3).to(device)
+    # built from the camera's own tensors: Cameras.get_intrinsics_matrices fills a CPU matrix, which on a GPU is four
+    # device-to-host reads and a copy back every step
+    fx, fy, cx, cy = (getattr(camera, name).reshape(-1) for name in ("fx", "fy", "cx", "cy"))
+    zero, one = torch.zeros_like(fx), torch.ones_like(fx)
+    K = torch.stack([fx, zero, cx, zero, fy, cy, zero, zero, one], dim=-1).reshape(-1, 3, 3).to(device)
     if downscale > 1:
         K = torch.cat([K[:, :2] / downscale, K[:, 2:]], dim=1)
     if full_size is None:
