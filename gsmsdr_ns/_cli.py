@@ -19,7 +19,7 @@ from typing import Any
 from rich.console import Console
 from rich.markup import escape
 
-from gsmsdr_ns.io.errors import DiskFullError, InputError
+from gsmsdr_ns.io.errors import DiskFullError, InputError, storage_error_line
 
 USER_ERRORS = (InputError, DiskFullError)
 """Exception classes printed as one clean line (``<ClassName>: <message>``) instead of a traceback."""
@@ -46,9 +46,14 @@ def user_error_line(exc: BaseException) -> str:
 
 def _print_user_errors(previous: Callable) -> Callable:
     def hook(exc_type, exc, tb) -> None:
-        if issubclass(exc_type, USER_ERRORS) and not debug_tracebacks():
-            print(user_error_line(exc), file=sys.stderr, flush=True)
-            return
+        if not debug_tracebacks():
+            if issubclass(exc_type, USER_ERRORS):
+                print(user_error_line(exc), file=sys.stderr, flush=True)
+                return
+            storage = storage_error_line(exc) if exc is not None else None
+            if storage is not None:  # a full disk or a refused write, whoever's code was writing
+                print(storage, file=sys.stderr, flush=True)
+                return
         previous(exc_type, exc, tb)
 
     hook.gsmsdr_user_errors = True  # type: ignore[attr-defined]  # marks the hook as installed (idempotence)
@@ -82,8 +87,9 @@ def run_entrypoint(parse: Callable[[], Any], console: Console, interrupted: str 
     """Run ``parse().main()`` as a console script.
 
     SIGTERM exits through the cleanup code. Ctrl-C prints ``interrupted`` (one line: what was kept, if anything) and
-    exits with status 130. An error of :data:`USER_ERRORS`, a FileExistsError, FileNotFoundError or ValueError is
-    printed as one red "error:" line with exit status 1 (with ``GSMSDR_DEBUG=1``: re-raised, with its traceback).
+    exits with status 130. An error of :data:`USER_ERRORS`, a FileExistsError, FileNotFoundError or ValueError, and
+    any error caused by a full disk or a refused write (:func:`storage_error_line`), is printed as one red "error:"
+    line with exit status 1 (with ``GSMSDR_DEBUG=1``: re-raised, with its traceback).
     """
     signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
@@ -96,4 +102,10 @@ def run_entrypoint(parse: Callable[[], Any], console: Console, interrupted: str 
         if debug_tracebacks():
             raise
         console.print(f"[bold red]error:[/bold red] {escape(str(e))}", highlight=False, soft_wrap=True)
+        sys.exit(1)
+    except Exception as e:
+        storage = storage_error_line(e)  # a full disk or a refused write, in our code or a library's
+        if storage is None or debug_tracebacks():
+            raise
+        console.print(f"[bold red]error:[/bold red] {escape(storage)}", highlight=False, soft_wrap=True)
         sys.exit(1)

@@ -408,3 +408,49 @@ def test_run_entrypoint_ctrl_c_and_user_errors(capsys, monkeypatch):
     monkeypatch.setenv("GSMSDR_DEBUG", "1")
     with pytest.raises(InputError):
         run_entrypoint(BadInput, console)
+
+
+def _interrupt_when(proc: subprocess.Popen, ready, what: str) -> tuple:
+    """Send SIGINT once ``ready()`` holds (hang guard: scaled 600 s), then collect the output."""
+    try:
+        deadline = time.monotonic() + scaled(600)
+        while not ready():
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, f"ns-train never got to {what}"
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGINT)
+        return proc.communicate(timeout=scaled(120))
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def test_ctrl_c_in_ns_train_prints_one_line_keeps_the_last_checkpoint_and_exits_130(tiny_scene: Path, tmp_path):
+    """nerfstudio's launcher prints KeyboardInterrupt's traceback and exits 0; our trainer exits 130 with one line
+    naming the last complete checkpoint, which loads."""
+    args = [str(BIN / "ns-train"), "gsmsdr", "--data", str(tiny_scene), "--output-dir", str(tmp_path / "out"),
+            "--timestamp", "run", "--max-num-iterations", "100000", "--steps-per-save", "3", *map(str, TRAIN_FLAGS)]
+    proc = subprocess.Popen(args, cwd=tmp_path, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
+    models = tmp_path / "out" / tiny_scene.name / "gsmsdr" / "run" / "nerfstudio_models"
+    stdout, stderr = _interrupt_when(proc, lambda: len(list(models.glob("*.ckpt"))) > 0, "a checkpoint")
+    assert proc.returncode == 130, (stdout + stderr)[-3000:]
+    assert "Traceback" not in stdout + stderr and "KeyboardInterrupt" not in stdout + stderr, stderr[-3000:]
+    (line,) = lines_with(stdout + stderr, "interrupted")
+    assert line.startswith("gsmsdr: interrupted at step ") and "the last complete checkpoint is " in line
+    kept = Path(line.split("the last complete checkpoint is ")[1])
+    assert kept.parent == models and kept.is_file()
+    assert load_checkpoint_file(kept)["step"] == int(kept.stem.split("-")[1])
+    assert not [p for p in models.parent.iterdir() if ".partial-" in p.name]
+
+
+def test_ctrl_c_while_ns_train_sets_up_exits_130_with_one_line(tiny_scene: Path, tmp_path):
+    args = [str(BIN / "ns-train"), "gsmsdr", "--data", str(tiny_scene), "--output-dir", str(tmp_path / "out"),
+            "--timestamp", "run", *map(str, TRAIN_FLAGS)]
+    proc = subprocess.Popen(args, cwd=tmp_path, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
+    config = tmp_path / "out" / tiny_scene.name / "gsmsdr" / "run" / "config.yml"  # written before set-up
+    stdout, stderr = _interrupt_when(proc, config.is_file, "its config")
+    assert proc.returncode == 130, (stdout + stderr)[-3000:]
+    assert "Traceback" not in stdout + stderr, stderr[-3000:]
+    assert len(lines_with(stdout + stderr, "gsmsdr: interrupted")) == 1

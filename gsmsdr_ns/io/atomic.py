@@ -4,21 +4,72 @@ Files are written to a hidden temporary sibling, flushed to disk and renamed ove
 atomic within one file system). Folders are built in a hidden temporary sibling folder and swapped into place;
 an existing target is first renamed aside and deleted only after the swap succeeded, so an error never leaves
 the caller without either the old or the new folder.
+
+Temporary names end in ``-<pid>-<8 hex digits>``: what a killed process (SIGKILL, a power cut) left behind is
+removed by the next writer of the same target (:func:`remove_stale_temporaries`), not by the process that died.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import secrets
 import shutil
+import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterator, Optional
+from typing import Any, Callable, Iterator, List, Optional
+
+STALE_AFTER_S = 60.0
+"""A temporary of a process that no longer runs is removed only once untouched this long (a process of another
+machine writing to the same shared folder keeps touching its own)."""
+
+_TEMP_SUFFIX = re.compile(r"-(\d+)-[0-9a-f]{8}(\.[^/]*)?$")
 
 
 def _temp_name(target: Path, tag: str) -> Path:
     return target.parent / f".{target.name}.{tag}-{os.getpid()}-{secrets.token_hex(4)}"
+
+
+def _process_exists(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def remove_stale_temporaries(folder: Path, prefix: str) -> List[Path]:
+    """Remove what writers that died left in ``folder``: entries named ``<prefix>...-<pid>-<8 hex>[.ext]`` whose
+    process no longer runs and that nobody touched for :data:`STALE_AFTER_S`. Returns the removed paths.
+
+    ``prefix``: the start of the temporary names of one target (``.scene.`` for the folder ``scene``), so a writer
+    cleans up after earlier writers of the same target only.
+    """
+    removed = []
+    try:
+        entries = [e for e in Path(folder).iterdir() if e.name.startswith(prefix)]
+    except OSError:
+        return removed
+    now = time.time()
+    for entry in entries:
+        match = _TEMP_SUFFIX.search(entry.name)
+        if match is None or _process_exists(int(match.group(1))):
+            continue
+        try:
+            if now - entry.lstat().st_mtime < STALE_AFTER_S:
+                continue
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry)
+            else:
+                entry.unlink()
+        except OSError:
+            continue  # gone meanwhile, or not ours to remove
+        removed.append(entry)
+    return removed
 
 
 def write_bytes_atomic(path: Path, data: bytes) -> Path:
@@ -46,7 +97,9 @@ def write_file_atomic(path: Path, write: Callable[[Path], Any]) -> Path:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _temp_name(path, "tmp").with_suffix(path.suffix)
+    remove_stale_temporaries(path.parent, f".{path.name}.")
+    tmp = _temp_name(path, "tmp")
+    tmp = tmp.with_name(tmp.name + path.suffix)
     try:
         write(tmp)
         with open(tmp, "rb") as f:
@@ -66,6 +119,7 @@ def temp_sibling_dir(target: Path, tag: str = "partial") -> Path:
     """
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(target.parent, f".{target.name}.")
     tmp = _temp_name(target, tag)
     tmp.mkdir()
     return tmp

@@ -25,7 +25,6 @@ discovering methods (``ns-train``, ``ns-eval``, ``ns-viewer``) and while reading
 
 from __future__ import annotations
 
-import errno
 import math
 import os
 import re
@@ -38,7 +37,8 @@ from typing import Any, Dict, List, Mapping, Optional
 import numpy as np
 import torch
 
-from gsmsdr_ns.io.errors import DiskFullError, InputError
+from gsmsdr_ns.io.atomic import remove_stale_temporaries
+from gsmsdr_ns.io.errors import DiskFullError, InputError, disk_full_cause, format_bytes
 
 
 def checkpoint_safe_globals() -> List[object]:
@@ -174,17 +174,9 @@ def load_checkpoint_file(path: Path) -> Dict[str, Any]:
                          f"{_fallback_advice(path)}") from e  # fmt: skip
 
 
-def _format_bytes(n: float) -> str:
-    for unit in ("bytes", "KiB", "MiB", "GiB"):
-        if n < 1024 or unit == "GiB":
-            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
-        n /= 1024
-    return f"{n:.1f} GiB"
-
-
 def _disk_full_error(path: Path, error: OSError) -> DiskFullError:
     try:
-        free = f"{_format_bytes(shutil.disk_usage(path.parent).free)} free"
+        free = f"{format_bytes(shutil.disk_usage(path.parent).free)} free"
     except OSError:
         free = "free space unknown"
     full = DiskFullError(
@@ -206,6 +198,7 @@ def save_checkpoint_atomic(payload: Mapping[str, Any], path: Path) -> Path:
     ``path``; any error removes the temporary file.
     """
     path = Path(path)
+    remove_stale_temporaries(path.parent.parent, f".{path.parent.name}.")  # of earlier runs that were killed
     tmp = path.parent.parent / f".{path.parent.name}.{path.name}.partial-{os.getpid()}-{secrets.token_hex(4)}"
     try:
         # A Python file object (not a path) makes torch report a failed write as the OSError it is.
@@ -216,8 +209,9 @@ def save_checkpoint_atomic(payload: Mapping[str, Any], path: Path) -> Path:
         os.replace(tmp, path)
     except BaseException as e:
         tmp.unlink(missing_ok=True)
-        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
-            raise _disk_full_error(path, e) from e
+        full = disk_full_cause(e)
+        if full is not None:
+            raise _disk_full_error(path, full) from full
         raise
     _fsync_dir(path.parent)
     return path

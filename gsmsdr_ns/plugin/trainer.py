@@ -16,14 +16,16 @@
 from __future__ import annotations
 
 import re
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Type
+from typing import Literal, Optional, Type
 
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from gsmsdr_ns._cli import INTERRUPT_EXIT_STATUS
 from gsmsdr_ns.plugin.checkpoint import (
     CheckpointMismatchError,
     checkpoint_file,
@@ -31,6 +33,14 @@ from gsmsdr_ns.plugin.checkpoint import (
     load_checkpoint_file,
     save_checkpoint_atomic,
 )
+
+
+def _exit_interrupted(message: str) -> None:
+    """Print ``gsmsdr: <message>`` on stderr and exit with status 130 (128 + SIGINT), as shells report Ctrl-C.
+
+    SystemExit, unlike KeyboardInterrupt, passes nerfstudio's launcher, which would print a traceback and return 0."""
+    print(f"gsmsdr: {message}", file=sys.stderr, flush=True)
+    raise SystemExit(INTERRUPT_EXIT_STATUS)
 
 
 def trained_method(checkpoint: Path) -> Optional[str]:
@@ -45,9 +55,33 @@ def trained_method(checkpoint: Path) -> Optional[str]:
 
 
 class GSMSDRTrainer(Trainer):
-    """nerfstudio's Trainer; checkpoints are written atomically and loaded with errors that name the file."""
+    """nerfstudio's Trainer; checkpoints are written atomically and loaded with errors that name the file, and
+    Ctrl-C ends ``ns-train`` with one line and exit status 130 (nerfstudio's launcher prints a traceback and exits 0,
+    so a script would count an interrupted run as a success)."""
 
     config: "GSMSDRTrainerConfig"
+
+    def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
+        try:
+            super().setup(test_mode)
+        except KeyboardInterrupt:
+            _exit_interrupted("interrupted while setting up; nothing was trained")
+
+    def train(self) -> None:
+        self._training_finished = False
+        try:
+            super().train()
+        except KeyboardInterrupt:
+            if self._training_finished:  # Ctrl-C is how a finished run's viewer is closed: not an interruption
+                CONSOLE.print("gsmsdr: viewer closed; training had finished")
+                return
+            kept = sorted(self.checkpoint_dir.glob("step-*.ckpt")) if self.checkpoint_dir.is_dir() else []
+            what = f"the last complete checkpoint is {kept[-1]}" if kept else "no checkpoint had been written yet"
+            _exit_interrupted(f"interrupted at step {self.step}; {what}")
+
+    def _train_complete_viewer(self) -> None:
+        self._training_finished = True
+        super()._train_complete_viewer()
 
     @check_main_thread
     def save_checkpoint(self, step: int) -> None:

@@ -26,7 +26,7 @@ import numpy as np
 import pycolmap
 
 from gsmsdr_ns.io.atomic import atomic_dir
-from gsmsdr_ns.io.errors import InputError
+from gsmsdr_ns.io.errors import InputError, require_free_space
 from gsmsdr_ns.io.images import list_images, read_image_size
 from gsmsdr_ns.process.config import ProcessConfig
 from gsmsdr_ns.process.sharpness import sharpness_scores
@@ -252,6 +252,11 @@ def process_photos(
         )
     _check_target(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
+    # pycolmap aborts the whole process (no Python error) when its database finds the disk full: check first. The
+    # database holds about a megabyte of features per photo, the scene a copy of every photo (and smaller ones).
+    needed = sum((images_dir / name).stat().st_size for name in names) * (2 if config.num_downscales else 1)
+    require_free_space(out.parent, needed + len(names) * 2**20 + 8 * 2**20, "gsmsdr-process",
+                       "Free some space, or choose --out on a disk with room.")  # fmt: skip
     pycolmap.set_random_seed(config.seed)
     seconds: Dict[str, float] = {}
     stage = _Stages(progress, seconds)
