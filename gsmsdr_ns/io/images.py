@@ -77,8 +77,34 @@ def read_image_size(path: Path) -> Tuple[int, int]:
     return int(width), int(height)
 
 
+def _png_bit_depth(path: Path) -> Optional[int]:
+    """Bits per sample of a PNG file (its IHDR chunk), None for other files."""
+    try:
+        with open(path, "rb") as f:
+            header = f.read(25)
+    except OSError:
+        return None
+    if len(header) < 25 or header[:8] != b"\x89PNG\r\n\x1a\n" or header[12:16] != b"IHDR":
+        return None
+    return header[24]
+
+
+def _decode_png16(path: Path, reduced: np.ndarray) -> np.ndarray:
+    """A 16-bit colour PNG at its depth (Pillow, behind scikit-image, reduces it to 8 bits): OpenCV's decoder, its BGR
+    order turned to RGB; ``reduced`` when OpenCV cannot read it."""
+    import cv2
+
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None or image.dtype != np.uint16 or image.shape[:2] != reduced.shape[:2]:
+        return reduced
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGBA if image.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    return image
+
+
 def decode_image(path: Path, expected_size: Optional[Tuple[int, int]] = None) -> np.ndarray:
-    """Decode an image file into ``[H, W, C]`` in the file's own dtype (C = 3 or 4; grey becomes 3 equal channels).
+    """Decode an image file into ``[H, W, C]`` in the file's own dtype (C = 3 or 4; grey becomes 3 equal channels;
+    16-bit PNGs stay 16-bit).
 
     Missing, empty, unidentifiable, truncated or corrupt files, unsupported channel counts and (when
     ``expected_size`` = (width, height) is given) a size other than the camera's are :class:`InputError`.
@@ -94,6 +120,8 @@ def decode_image(path: Path, expected_size: Optional[Tuple[int, int]] = None) ->
             f"gsmsdr: cannot read image file '{path}': {err}. The file is unreadable or truncated; re-copy or "
             "re-export it."
         ) from err
+    if image.dtype == np.uint8 and _png_bit_depth(path) == 16:
+        image = _decode_png16(path, image)
     if image.ndim == 2:
         image = image[:, :, None]
     if image.ndim == 3 and image.shape[2] == 1:
@@ -112,11 +140,25 @@ def decode_image(path: Path, expected_size: Optional[Tuple[int, int]] = None) ->
 
 
 def read_image(path: Path, expected_size: Optional[Tuple[int, int]] = None) -> np.ndarray:
-    """Decode an image file into a ``[H, W, C]`` uint8 array (C = 3 or 4); checks as :func:`decode_image`."""
+    """Decode an image file into a ``[H, W, C]`` uint8 array (C = 3 or 4); checks as :func:`decode_image`.
+
+    Deeper files are scaled to 8 bits, not truncated: 16-bit values by ``round(v * 255 / 65535)``, float values
+    (float TIFF) in [0, 1] by ``round(v * 255)``; float values outside [0, 1] (HDR) are an InputError.
+    """
     import skimage.util
 
     image = decode_image(path, expected_size)
-    if image.dtype != np.uint8:
+    if image.dtype == np.uint16:
+        image = ((image.astype(np.uint32) * 255 + 32767) // 65535).astype(np.uint8)
+    elif image.dtype.kind == "f":
+        finite = np.isfinite(image).all()
+        if not finite or image.min(initial=0.0) < 0.0 or image.max(initial=0.0) > 1.0:
+            raise InputError(
+                f"gsmsdr: image file '{path}' holds floating-point values outside [0, 1] (an HDR or unnormalised "
+                "image); tone-map it to an 8- or 16-bit image first."
+            )
+        image = np.round(image * 255.0).astype(np.uint8)
+    elif image.dtype != np.uint8:
         image = skimage.util.img_as_ubyte(image)
     return np.ascontiguousarray(image)
 
