@@ -19,7 +19,7 @@ from typing import Any
 from rich.console import Console
 from rich.markup import escape
 
-from gsmsdr_ns.io.errors import DiskFullError, InputError, storage_error_line
+from gsmsdr_ns.io.errors import DiskFullError, InputError, SceneFolderMissingError, storage_error_line
 
 USER_ERRORS = (InputError, DiskFullError)
 """Exception classes printed as one clean line (``<ClassName>: <message>``) instead of a traceback."""
@@ -39,9 +39,17 @@ def debug_tracebacks() -> bool:
     return os.environ.get(DEBUG_ENV, "").strip().lower() not in ("", "0", "false", "no")
 
 
+def user_error_message(exc: BaseException) -> str:
+    """The message of an error of :data:`USER_ERRORS`, with the fix that exists for the running command."""
+    if isinstance(exc, SceneFolderMissingError):
+        return exc.for_command(Path(sys.argv[0]).name if sys.argv else "")
+    return str(exc)
+
+
 def user_error_line(exc: BaseException) -> str:
     """The one line an error of :data:`USER_ERRORS` prints as: ``InputError: gsmsdr: ...``."""
-    return f"{type(exc).__name__}: {exc}"
+    name = "InputError" if isinstance(exc, SceneFolderMissingError) else type(exc).__name__  # as before it had a class
+    return f"{name}: {user_error_message(exc)}"
 
 
 def _print_user_errors(previous: Callable) -> Callable:
@@ -101,7 +109,8 @@ def run_entrypoint(parse: Callable[[], Any], console: Console, interrupted: str 
     except (*USER_ERRORS, FileExistsError, FileNotFoundError, ValueError) as e:
         if debug_tracebacks():
             raise
-        console.print(f"[bold red]error:[/bold red] {escape(str(e))}", highlight=False, soft_wrap=True)
+        message = user_error_message(e) if isinstance(e, USER_ERRORS) else str(e)
+        console.print(f"[bold red]error:[/bold red] {escape(message)}", highlight=False, soft_wrap=True)
         sys.exit(1)
     except Exception as e:
         storage = storage_error_line(e)  # a full disk or a refused write, in our code or a library's

@@ -454,3 +454,55 @@ def test_ctrl_c_while_ns_train_sets_up_exits_130_with_one_line(tiny_scene: Path,
     assert proc.returncode == 130, (stdout + stderr)[-3000:]
     assert "Traceback" not in stdout + stderr, stderr[-3000:]
     assert len(lines_with(stdout + stderr, "gsmsdr: interrupted")) == 1
+
+
+def test_out_of_range_step_options_and_kernel_sizes_name_the_allowed_range():
+    from gsmsdr_ns.blur.hpko import MAX_KERNEL_SIZE, check_kernel_sizes
+    from gsmsdr_ns.plugin.trainer import check_step_options
+
+    for bad in ((5, 9, 999), (5, MAX_KERNEL_SIZE + 2), (4,)):
+        with pytest.raises(InputError, match=rf"odd integers from 1 to {MAX_KERNEL_SIZE} \(--pipeline.model."):
+            check_kernel_sizes(bad)
+    assert check_kernel_sizes((5, 9, MAX_KERNEL_SIZE)) == (5, 9, MAX_KERNEL_SIZE)
+    config = gsmsdr_trainer_config()
+    check_step_options(config)
+    for name, flag in (("max_num_iterations", "--max-num-iterations"), ("steps_per_save", "--steps-per-save")):
+        bad = dataclasses.replace(config, **{name: 0})
+        with pytest.raises(InputError, match=rf"^gsmsdr: {flag} must be an integer >= 1, got 0$"):
+            check_step_options(bad)
+    config.logging.steps_per_log = -5
+    with pytest.raises(InputError, match="--logging.steps-per-log must be an integer >= 1, got -5"):
+        check_step_options(config)
+
+
+def test_a_moved_scene_names_the_fix_of_the_command_that_met_it(monkeypatch, tmp_path):
+    from gsmsdr_ns._cli import user_error_line
+    from gsmsdr_ns.io.errors import SceneFolderMissingError
+
+    error = SceneFolderMissingError(tmp_path / "gone")
+    monkeypatch.setattr(sys, "argv", ["/venv/bin/ns-train", "gsmsdr"])
+    assert user_error_line(error).endswith("Pass the scene directory with --data <dir> (make a test scene with "
+                                           "`gsmsdr-synth`).")  # fmt: skip
+    for command in ("ns-eval", "gsmsdr-eval", "gsmsdr-export", "ns-viewer"):
+        monkeypatch.setattr(sys, "argv", [f"/venv/bin/{command}"])
+        line = user_error_line(error)
+        assert line.startswith(f"InputError: gsmsdr: the scene folder '{tmp_path / 'gone'}' that the run's config.yml")
+        assert "--data" not in line and f"{command} reads it from config.yml" in line
+
+
+def test_ns_eval_of_a_run_whose_scene_moved_says_to_fix_config_yml(trained_run: TrainedRun, tmp_path: Path):
+    config = yaml.load(trained_run.config.read_text(), Loader=yaml.Loader)  # nerfstudio's own way to read it
+    moved = tmp_path / "moved-away"
+    config.data = config.pipeline.datamanager.data = config.pipeline.datamanager.dataparser.data = moved
+    run = tmp_path / "run"  # the checkpoints stay where config.yml says (the trained run's)
+    run.mkdir()
+    (run / "config.yml").write_text(yaml.dump(config))
+    proc = subprocess.run([str(BIN / "ns-eval"), "--load-config", str(run / "config.yml"), "--output-path",
+                           str(tmp_path / "eval.json")], cwd=tmp_path, env=cli_env(), capture_output=True, text=True,
+                          timeout=scaled(600))  # fmt: skip
+    output = proc.stdout + proc.stderr
+    assert proc.returncode == 1 and "Traceback" not in output, output[-3000:]
+    (line,) = lines_with(output, "InputError")
+    assert f"the scene folder '{moved}' that the run's config.yml names does not exist" in line
+    assert "ns-eval reads it from config.yml" in line and "--data" not in line
+    assert not (tmp_path / "eval.json").exists()

@@ -21,6 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from gsmsdr_ns.io.errors import InputError
+
 __all__ = [
     "ScaleInfo",
     "downsample_for_scale",
@@ -48,11 +50,20 @@ def downsample_for_scale(scale: int) -> int:
     return 2 ** (scale - 1)
 
 
+MAX_KERNEL_SIZE = 33
+"""Largest blur kernel (pixels across): twice the paper's 17. At 33 a 600x400 image's per-pixel kernels already hold
+261M weights; larger sizes only exhaust memory (999 asked for terabytes)."""
+
+
 def check_kernel_sizes(kernel_sizes: Sequence[int]) -> Tuple[int, ...]:
-    """Validate coarse-to-fine kernel sizes: non-empty, odd, >= 1 and non-decreasing. Returns them as a tuple."""
+    """Validate coarse-to-fine kernel sizes: non-empty, odd, in [1, MAX_KERNEL_SIZE] and non-decreasing. Returns
+    them as a tuple; InputError (a ValueError) naming the allowed range otherwise."""
     ks = tuple(int(k) for k in kernel_sizes)
-    if not ks or any(k < 1 or k % 2 == 0 for k in ks):
-        raise ValueError(f"kernel sizes must be odd integers >= 1, got {list(kernel_sizes)}")
+    if not ks or any(k < 1 or k % 2 == 0 or k > MAX_KERNEL_SIZE for k in ks):
+        raise InputError(
+            f"gsmsdr: blur kernel sizes must be odd integers from 1 to {MAX_KERNEL_SIZE} "
+            f"(--pipeline.model.blur-field.kernel-sizes), got {list(kernel_sizes)}"
+        )
     if any(b < a for a, b in zip(ks, ks[1:])):
         raise ValueError(f"kernel sizes are listed coarse to fine and must not decrease, got {list(ks)}")
     return ks

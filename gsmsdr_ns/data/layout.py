@@ -24,7 +24,7 @@ from typing import List, Optional, Tuple
 import numpy as np
 
 from gsmsdr_ns.io.colmap import has_colmap_model
-from gsmsdr_ns.io.errors import InputError, InputWarning
+from gsmsdr_ns.io.errors import InputError, InputWarning, SceneFolderMissingError
 from gsmsdr_ns.io.images import list_images
 
 HOLD_PREFIX = "hold="
@@ -110,10 +110,7 @@ def detect_layout(data: Path) -> LayoutChoice:
     if data.is_file() and data.suffix.lower() == ".json":
         return LayoutChoice("nerfstudio-data", f"--data is the json file {data.name}")
     if not data.is_dir():
-        raise InputError(
-            f"gsmsdr: data directory '{data}' does not exist or is not a directory. Pass the scene directory with "
-            "--data <dir> (make a test scene with `gsmsdr-synth`)."
-        )
+        raise SceneFolderMissingError(data)
     markers = [p.name for p in hold_files(data)]
     if (data / TEST_IMAGES_DIR).is_dir():
         markers.append(f"{TEST_IMAGES_DIR}/")

@@ -15,6 +15,30 @@ class InputError(ValueError):
     """Input that gsmsdr cannot use; the message names the file or value and says how to fix it."""
 
 
+class SceneFolderMissingError(InputError):
+    """The scene folder a command was given, or a run's config.yml names, is not there."""
+
+    LOADED_RUN_COMMANDS = ("ns-eval", "ns-viewer", "ns-render", "gsmsdr-eval", "gsmsdr-export")
+    """Commands that read the scene folder from a run's config.yml instead of a --data option."""
+
+    def __init__(self, folder) -> None:
+        self.folder = Path(folder)
+        super().__init__(
+            f"gsmsdr: data directory '{folder}' does not exist or is not a directory. Pass the scene directory with "
+            "--data <dir> (make a test scene with `gsmsdr-synth`)."
+        )
+
+    def for_command(self, command: str) -> str:
+        """The message with the fix that exists for ``command`` (those loading a run take no --data)."""
+        if command not in self.LOADED_RUN_COMMANDS:
+            return str(self)
+        return (
+            f"gsmsdr: the scene folder '{self.folder}' that the run's config.yml names does not exist (moved or "
+            f"deleted?). {command} reads it from config.yml: put the scene back there, or change every `data:` "
+            "entry in config.yml to the folder's new place."
+        )
+
+
 class InputWarning(UserWarning):
     """Input that is usable, but only after a guess (a default hold, unknown degradations, ...)."""
 

@@ -33,7 +33,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from gsmsdr_ns.data.poses import check_rotations
 from gsmsdr_ns.io.colmap import ColmapModel, read_colmap
-from gsmsdr_ns.io.errors import InputError
+from gsmsdr_ns.io.errors import InputError, SceneFolderMissingError
 from gsmsdr_ns.io.images import read_image
 
 
@@ -88,7 +88,7 @@ class GSMSDRDataParser(ColmapDataParser):
         data = Path(self.config.data)
         hint = "Pass the scene directory with --data <dir> (make a test scene with `gsmsdr-synth`)."
         if not data.is_dir():
-            raise InputError(f"gsmsdr: data directory '{data}' does not exist or is not a directory. {hint}")
+            raise SceneFolderMissingError(data)
         recon = data / self.config.colmap_path
         if not any((recon / f"cameras{ext}").exists() for ext in (".bin", ".txt")):
             raise InputError(

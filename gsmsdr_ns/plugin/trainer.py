@@ -26,6 +26,7 @@ from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gsmsdr_ns._cli import INTERRUPT_EXIT_STATUS
+from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.plugin.checkpoint import (
     CheckpointMismatchError,
     checkpoint_file,
@@ -33,6 +34,20 @@ from gsmsdr_ns.plugin.checkpoint import (
     load_checkpoint_file,
     save_checkpoint_atomic,
 )
+
+
+STEP_OPTIONS = ("max_num_iterations", "steps_per_save", "steps_per_log")
+"""Trainer step counts that must be >= 1 (0 ends nerfstudio's loop in a KeyError or divides by zero)."""
+
+
+def check_step_options(config: TrainerConfig) -> None:
+    """InputError naming the option and its allowed range when a step count of ``config`` is below 1."""
+    values = {name: getattr(config, name, None) for name in STEP_OPTIONS}
+    values["steps_per_log"] = config.logging.steps_per_log
+    for name, value in values.items():
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            flag = "--logging.steps-per-log" if name == "steps_per_log" else "--" + name.replace("_", "-")
+            raise InputError(f"gsmsdr: {flag} must be an integer >= 1, got {value!r}")
 
 
 def _exit_interrupted(message: str) -> None:
@@ -62,6 +77,7 @@ class GSMSDRTrainer(Trainer):
     config: "GSMSDRTrainerConfig"
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
+        check_step_options(self.config)
         try:
             super().setup(test_mode)
         except KeyboardInterrupt:
