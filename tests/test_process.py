@@ -4,6 +4,7 @@ photos, and the written scene trained by ``ns-train``."""
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -15,6 +16,7 @@ import pytest
 from conftest import TRAIN_FLAGS, run_cli
 from gsmsdr_ns.bench.sfm import llff_cameras_opencv, pose_errors
 from gsmsdr_ns.io.colmap import read_colmap
+from gsmsdr_ns.io.errors import InputWarning
 from gsmsdr_ns.io.images import list_images, read_image, write_image
 from gsmsdr_ns.data.layout import detect_layout
 from gsmsdr_ns.process import ProcessConfig, RegistrationError, choose_matching, process_photos
@@ -213,3 +215,38 @@ def test_domain_size_pooling_reaches_the_sift_descriptors(tmp_path: Path):
     assert len(off) > 100 and len(on) > 100 and off.shape[1] == on.shape[1] == 128
     n = min(len(off), len(on))
     assert not np.array_equal(off[:n], on[:n])
+
+
+def _copies_of_fern(folder: Path, count: int = 6) -> Path:
+    """``count`` fern photos plus a byte copy, a JPEG re-encoding and a half-size copy of three of them."""
+    from PIL import Image
+
+    folder.mkdir()
+    names = list_images(FERN_IMAGES)[:count]
+    for name in names:
+        shutil.copy(FERN_IMAGES / name, folder / name)
+    shutil.copy(FERN_IMAGES / names[0], folder / "zz_byte_copy.png")
+    Image.open(FERN_IMAGES / names[1]).convert("RGB").save(folder / "image001_reencoded.jpg", quality=90)
+    photo = Image.open(FERN_IMAGES / names[2]).convert("RGB")
+    photo.resize((photo.width // 2, photo.height // 2), Image.Resampling.BILINEAR).save(folder / "small_copy.png")
+    return folder
+
+
+def test_copies_of_a_photo_are_found_and_different_photos_are_not(tmp_path: Path):
+    from gsmsdr_ns.process.duplicates import find_duplicates
+
+    folder = _copies_of_fern(tmp_path / "photos")
+    names = list_images(folder)
+    assert find_duplicates(folder, names) == {"image001_reencoded.jpg": "image001.png",
+                                              "small_copy.png": "image002.png", "zz_byte_copy.png": "image000.png"}
+    assert find_duplicates(FERN_IMAGES, list_images(FERN_IMAGES)) == {}  # 20 photos of one scene, all different
+
+
+def test_gsmsdr_process_leaves_copies_out_so_none_becomes_a_test_view(tmp_path: Path):
+    folder = _copies_of_fern(tmp_path / "photos")
+    with pytest.warns(InputWarning, match=r"left out 3 photo\(s\) that copy another one.*zz_byte_copy.png \(= image000"):
+        result = process_photos(folder, tmp_path / "scene", ProcessConfig(hold=3))
+    assert result.duplicates == {"image001_reencoded.jpg": "image001.png", "small_copy.png": "image002.png",
+                                 "zz_byte_copy.png": "image000.png"}  # fmt: skip
+    assert result.registered == list_images(FERN_IMAGES)[:6]
+    assert list_images(tmp_path / "scene" / "images") == result.registered

@@ -53,6 +53,12 @@ class ProcessCLI:
             f"matching, {result.num_points} points, {result.num_models} model(s) found, largest kept) in "
             f"{sum(result.seconds.values()):.1f}s; wrote {result.scene}"
         )
+        if result.duplicates:
+            CONSOLE.print(
+                "[yellow]left out as copies of another photo (a copy could become a test view of its original):"
+                "[/yellow] " + ", ".join(f"{copy} (= {kept})" for copy, kept in sorted(result.duplicates.items())),
+                soft_wrap=True,
+            )
         if result.unregistered:
             CONSOLE.print(
                 "[yellow]not registered (sharpness = variance of the Laplacian, lower is blurrier):[/yellow] "

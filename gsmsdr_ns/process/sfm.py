@@ -18,6 +18,7 @@ from __future__ import annotations
 import os
 import shutil
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
@@ -26,9 +27,10 @@ import numpy as np
 import pycolmap
 
 from gsmsdr_ns.io.atomic import atomic_dir
-from gsmsdr_ns.io.errors import InputError, require_free_space
+from gsmsdr_ns.io.errors import InputError, InputWarning, require_free_space
 from gsmsdr_ns.io.images import list_images, read_image_size
 from gsmsdr_ns.process.config import ProcessConfig
+from gsmsdr_ns.process.duplicates import find_duplicates
 from gsmsdr_ns.process.sharpness import sharpness_scores
 
 _CAMERA_MODES = {
@@ -61,6 +63,8 @@ class ProcessResult:
     """Models the mapper found (only the largest is written)."""
     seconds: Dict[str, float] = field(default_factory=dict)
     """Time spent per stage."""
+    duplicates: Dict[str, str] = field(default_factory=dict)
+    """Photos left out as copies of another one: ``{copy: the photo kept}`` (:func:`find_duplicates`)."""
 
 
 def choose_matching(num_images: int, config: ProcessConfig) -> str:
@@ -250,6 +254,16 @@ def process_photos(
             f"gsmsdr-process: '{images_dir}' has {len(names)} photo(s); structure-from-motion needs at least 2 "
             "overlapping photos (png, jpg, ...) directly inside the folder."
         )
+    duplicates = find_duplicates(images_dir, names)
+    if duplicates:  # a copy could end up a test view of its own original: scores would measure memory
+        names = [name for name in names if name not in duplicates]
+        warnings.warn(InputWarning(
+            f"gsmsdr-process: left out {len(duplicates)} photo(s) that copy another one in '{images_dir}': "
+            + ", ".join(f"{copy} (= {kept})" for copy, kept in sorted(duplicates.items()))
+        ), stacklevel=2)  # fmt: skip
+        if len(names) < 2:
+            raise InputError(f"gsmsdr-process: '{images_dir}' holds copies of {len(names)} photo(s) only; "
+                             "structure-from-motion needs at least 2 different overlapping photos.")  # fmt: skip
     _check_target(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
     # pycolmap aborts the whole process (no Python error) when its database finds the disk full: check first. The
@@ -284,7 +298,7 @@ def process_photos(
     return ProcessResult(
         scene=out, matching=matching, registered=registered,
         unregistered=unregistered_with_scores(names, registered, scores),
-        num_points=model.num_points3D(), num_models=len(models), seconds=seconds,
+        num_points=model.num_points3D(), num_models=len(models), seconds=seconds, duplicates=duplicates,
     )  # fmt: skip
 
 
