@@ -7,7 +7,10 @@
 * empty, truncated and damaged checkpoints, folders without checkpoints and run folders given as ``--load-dir``
   name the file or folder and what to do, in ``ns-train`` (the trainer) and ``ns-eval``;
 * a ``gsmsdr`` checkpoint loaded with ``gsmsdr-lite`` names the widths of both and the method to use;
-* Ctrl-C in our CLIs prints one line and exits 130 without leaving output.
+* Ctrl-C in our CLIs prints one line and exits 130 without leaving output; in ``ns-train`` it names the last complete
+  checkpoint (or says set-up was interrupted) and exits 130, and closing the viewer after training exits 0;
+* step counts below 1 and kernel sizes above the limit name the allowed range; a run whose scene moved tells the
+  commands that load it to fix config.yml.
 """
 
 from __future__ import annotations
@@ -506,3 +509,26 @@ def test_ns_eval_of_a_run_whose_scene_moved_says_to_fix_config_yml(trained_run: 
     assert f"the scene folder '{moved}' that the run's config.yml names does not exist" in line
     assert "ns-eval reads it from config.yml" in line and "--data" not in line
     assert not (tmp_path / "eval.json").exists()
+
+
+def test_ctrl_c_closing_the_viewer_after_training_is_not_an_interruption(tiny_scene: Path, tmp_path):
+    """With the viewer, ns-train waits after the last step until Ctrl-C: that ends the run normally (exit 0)."""
+    from viewer_client import LOOPBACK, free_loopback_port
+
+    flags = [str(f) for f in TRAIN_FLAGS]
+    vis = flags.index("--vis")
+    del flags[vis : vis + 2]
+    stdout_path = tmp_path / "stdout.txt"
+    args = [str(BIN / "ns-train"), "gsmsdr", "--data", str(tiny_scene), "--output-dir", str(tmp_path / "out"),
+            "--timestamp", "run", "--max-num-iterations", "3", *flags, "--vis", "viewer",
+            "--viewer.quit-on-train-completion", "False", "--viewer.websocket-host", LOOPBACK,
+            "--viewer.websocket-port", str(free_loopback_port())]  # fmt: skip
+    with open(stdout_path, "w") as stdout:
+        proc = subprocess.Popen(args, cwd=tmp_path, env=cli_env(), stdout=stdout, stderr=subprocess.PIPE, text=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
+        _, stderr = _interrupt_when(proc, lambda: "Training Finished" in stdout_path.read_text(errors="replace"),
+                                    "the end of training")  # fmt: skip
+    output = stdout_path.read_text(errors="replace") + stderr
+    assert proc.returncode == 0, output[-3000:]
+    assert "Traceback" not in output and "interrupted" not in output
+    assert "gsmsdr: viewer closed; training had finished" in output
