@@ -452,8 +452,14 @@ def test_ctrl_c_while_ns_train_sets_up_exits_130_with_one_line(tiny_scene: Path,
             "--timestamp", "run", *map(str, TRAIN_FLAGS)]
     proc = subprocess.Popen(args, cwd=tmp_path, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
-    config = tmp_path / "out" / tiny_scene.name / "gsmsdr" / "run" / "config.yml"  # written before set-up
-    stdout, stderr = _interrupt_when(proc, config.is_file, "its config")
+    log = []
+
+    def reading_the_scene() -> bool:  # printed inside set-up, before the scene's COLMAP model is read
+        log.append(os.read(proc.stdout.fileno(), 1 << 16).decode(errors="replace"))
+        return "gsmsdr-data: reading" in "".join(log)
+
+    stdout, stderr = _interrupt_when(proc, reading_the_scene, "reading the scene")
+    stdout = "".join(log) + stdout
     assert proc.returncode == 130, (stdout + stderr)[-3000:]
     assert "Traceback" not in stdout + stderr, stderr[-3000:]
     assert len(lines_with(stdout + stderr, "gsmsdr: interrupted")) == 1
@@ -532,3 +538,24 @@ def test_ctrl_c_closing_the_viewer_after_training_is_not_an_interruption(tiny_sc
     assert proc.returncode == 0, output[-3000:]
     assert "Traceback" not in output and "interrupted" not in output
     assert "gsmsdr: viewer closed; training had finished" in output
+
+
+def test_ctrl_c_that_a_library_turned_into_its_own_error_still_exits_130(trainer: GSMSDRTrainer, monkeypatch,
+                                                                         capsys):  # fmt: skip
+    """pycolmap's import turns a KeyboardInterrupt into RuntimeError("Cannot import the C++ backend ...")."""
+    from nerfstudio.engine.trainer import Trainer
+
+    def interrupted_import(*_args, **_kwargs):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise RuntimeError("Cannot import the C++ backend pycolmap._core.")
+
+    monkeypatch.setattr(Trainer, "setup", interrupted_import)
+    with pytest.raises(SystemExit) as exited:
+        trainer.setup()
+    assert exited.value.code == 130
+    assert capsys.readouterr().err == "gsmsdr: interrupted while setting up; nothing was trained\n"
+    monkeypatch.setattr(Trainer, "setup", lambda *_a, **_k: (_ for _ in ()).throw(RuntimeError("a bug")))
+    with pytest.raises(RuntimeError, match="a bug"):  # other errors stay what they are
+        trainer.setup()

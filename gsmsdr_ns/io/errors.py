@@ -5,7 +5,7 @@ from __future__ import annotations
 import errno
 import shutil
 from pathlib import Path
-from typing import Optional
+from typing import Iterator, Optional
 
 DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 """errno values of a write that found no room (the disk, or the user's quota)."""
@@ -61,13 +61,19 @@ WRITE_REFUSED_ERRNOS = (errno.EROFS, errno.EACCES, errno.EPERM)
 """errno values of a write the file system refused (read-only, no permission)."""
 
 
-def _oserror_in_chain(exc: Optional[BaseException], errnos) -> Optional[OSError]:
+def exception_chain(exc: Optional[BaseException]) -> Iterator[BaseException]:
+    """``exc`` and the exceptions behind it (its ``__cause__``, else its ``__context__``, and so on), each once."""
     seen = set()
     while exc is not None and id(exc) not in seen:
         seen.add(id(exc))
-        if isinstance(exc, OSError) and exc.errno in errnos:
-            return exc
+        yield exc
         exc = exc.__cause__ or exc.__context__
+
+
+def _oserror_in_chain(exc: Optional[BaseException], errnos) -> Optional[OSError]:
+    for error in exception_chain(exc):
+        if isinstance(error, OSError) and error.errno in errnos:
+            return error
     return None
 
 

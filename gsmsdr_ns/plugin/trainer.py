@@ -26,7 +26,7 @@ from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from gsmsdr_ns._cli import INTERRUPT_EXIT_STATUS
-from gsmsdr_ns.io.errors import InputError
+from gsmsdr_ns.io.errors import InputError, exception_chain
 from gsmsdr_ns.plugin.checkpoint import (
     CheckpointMismatchError,
     checkpoint_file,
@@ -82,6 +82,11 @@ class GSMSDRTrainer(Trainer):
             super().setup(test_mode)
         except KeyboardInterrupt:
             _exit_interrupted("interrupted while setting up; nothing was trained")
+        except Exception as e:
+            # a library can turn Ctrl-C into an error of its own (pycolmap's import: "Cannot import the C++ backend")
+            if any(isinstance(cause, KeyboardInterrupt) for cause in exception_chain(e)):
+                _exit_interrupted("interrupted while setting up; nothing was trained")
+            raise
 
     def train(self) -> None:
         self._training_finished = False
