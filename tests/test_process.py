@@ -250,3 +250,21 @@ def test_gsmsdr_process_leaves_copies_out_so_none_becomes_a_test_view(tmp_path: 
                                  "zz_byte_copy.png": "image000.png"}  # fmt: skip
     assert result.registered == list_images(FERN_IMAGES)[:6]
     assert list_images(tmp_path / "scene" / "images") == result.registered
+
+
+def test_photos_that_do_not_register_are_blamed_on_blur_only_when_they_are_blurrier(tmp_path: Path):
+    from gsmsdr_ns.process.sfm import check_registration
+
+    sharp_pair = {"a.png": 410.0, "b.png": 395.0}
+    with pytest.raises(RegistrationError) as info:
+        check_registration(["a.png", "b.png"], [], sharp_pair, ProcessConfig(), tmp_path)
+    message = str(info.value)
+    assert "blurred" not in message and "--max-image-size" not in message
+    assert "with 2 photos, add a few more taken from nearby viewpoints" in message
+    names = [f"{i}.png" for i in range(6)]
+    scores = {name: 400.0 for name in names} | {"5.png": 60.0}
+    with pytest.raises(RegistrationError) as info:
+        check_registration(names, names[:2], scores, ProcessConfig(min_registered=4), tmp_path)
+    message = str(info.value)
+    assert "5.png look blurred next to the others: try a smaller --max-image-size" in message
+    assert "2.png look" not in message and "add a few more" not in message

@@ -176,13 +176,32 @@ def check_registration(names: List[str], registered: List[str], scores: Dict[str
     if len(registered) >= needed:
         return
     missing = describe_unregistered(names, registered, scores)
+    advice = ["Photos must overlap and show the same static scene"]
+    if len(names) < 4:  # mapping needs a first pair with enough parallax: two or three photos rarely have one
+        advice.append(f"with {len(names)} photos, add a few more taken from nearby viewpoints")
+    blurred = blurrier_than_the_rest(names, registered, scores)
+    if blurred:
+        advice.append(f"{', '.join(blurred)} look blurred next to the others: try a smaller --max-image-size")
+    advice.append("for video frames try --matching sequential")
     raise RegistrationError(
         f"gsmsdr-process: only {len(registered)} of {len(names)} photos in '{images_dir}' registered into one model "
         f"(need {needed}: --min-registered {config.min_registered}, --min-registered-fraction "
         f"{config.min_registered_fraction}). Not registered (sharpness = variance of the Laplacian, lower is "
-        f"blurrier): {missing}. Photos must overlap and show the same static scene; for blurred photos try a "
-        "smaller --max-image-size; for video frames try --matching sequential."
+        f"blurrier): {missing}. " + "; ".join(advice) + "."
     )
+
+
+BLURRED_SHARPNESS_RATIO = 0.5
+"""A photo is called blurred next to the others when its sharpness is below this fraction of the median sharpness of
+the registered photos (of all photos when none registered)."""
+
+
+def blurrier_than_the_rest(names: List[str], registered: List[str], scores: Dict[str, float]) -> List[str]:
+    """The unregistered photos much blurrier than the reference (:data:`BLURRED_SHARPNESS_RATIO`), so blur is a
+    likely reason they did not register; sharp photos that failed are not blamed on blur."""
+    reference = float(np.median([scores[n] for n in (registered or names)]))
+    kept = set(registered)
+    return [n for n in names if n not in kept and scores[n] < BLURRED_SHARPNESS_RATIO * reference]
 
 
 def unregistered_with_scores(names: List[str], registered: List[str], scores: Dict[str, float]):
