@@ -108,3 +108,18 @@ def test_the_training_datamanager_reads_16_bit_scenes_at_their_depth(deep_scene:
     cached = datamanager.cached_train[0]["image"]  # what training steps read
     path = datamanager.train_dataset._dataparser_outputs.image_filenames[0]
     assert np.array_equal(cached.cpu().numpy(), _scaled(_read16(path)))
+
+
+def test_cmyk_and_grey_alpha_images_become_rgb(tmp_path):
+    """A CMYK JPEG's four channels would pass for RGBA (nerfstudio's loader takes them so); grey + alpha has two."""
+    rgb = np.zeros((8, 8, 3), np.uint8)
+    rgb[:4] = (200, 30, 10)
+    rgb[4:] = (5, 90, 250)
+    Image.fromarray(rgb).convert("CMYK").save(tmp_path / "cmyk.jpg", quality=100)
+    assert Image.open(tmp_path / "cmyk.jpg").mode == "CMYK"
+    decoded = read_image(tmp_path / "cmyk.jpg")
+    assert decoded.shape == (8, 8, 3) and np.abs(decoded.astype(int) - rgb).max() <= 8  # JPEG's rounding
+    grey = np.arange(64, dtype=np.uint8).reshape(8, 8) * 4
+    Image.fromarray(grey).convert("LA").save(tmp_path / "la.png")
+    decoded = read_image(tmp_path / "la.png")
+    assert decoded.shape == (8, 8, 4) and np.array_equal(decoded[..., 0], grey) and (decoded[..., 3] == 255).all()

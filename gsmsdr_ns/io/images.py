@@ -89,6 +89,23 @@ def _png_bit_depth(path: Path) -> Optional[int]:
     return header[24]
 
 
+CONVERTED_MODES = {"CMYK": "RGB", "YCbCr": "RGB", "LAB": "RGB", "HSV": "RGB", "LA": "RGBA", "PA": "RGBA"}
+"""Pillow modes decoded into RGB(A) by Pillow's own conversion: their channels are not RGB(A) (a CMYK JPEG's four
+channels would otherwise pass for RGBA), or there are two of them (grey + alpha)."""
+
+
+def _convert_colour_space(path: Path) -> Optional[np.ndarray]:
+    """The image converted to RGB / RGBA when its Pillow mode is one of :data:`CONVERTED_MODES`, else None."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            target = CONVERTED_MODES.get(image.mode)
+            return None if target is None else np.asarray(image.convert(target))
+    except Exception:  # unreadable by Pillow: the decoder's own result (and errors) stand
+        return None
+
+
 def _decode_png16(path: Path, reduced: np.ndarray) -> np.ndarray:
     """A 16-bit colour PNG at its depth (Pillow, behind scikit-image, reduces it to 8 bits): OpenCV's decoder, its BGR
     order turned to RGB; ``reduced`` when OpenCV cannot read it."""
@@ -122,6 +139,9 @@ def decode_image(path: Path, expected_size: Optional[Tuple[int, int]] = None) ->
         ) from err
     if image.dtype == np.uint8 and _png_bit_depth(path) == 16:
         image = _decode_png16(path, image)
+    converted = _convert_colour_space(path)
+    if converted is not None:
+        image = converted
     if image.ndim == 2:
         image = image[:, :, None]
     if image.ndim == 3 and image.shape[2] == 1:
