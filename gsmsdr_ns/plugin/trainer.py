@@ -8,6 +8,8 @@
   :func:`find_checkpoint` / :func:`load_checkpoint_file`: a missing, empty, truncated or damaged checkpoint, a
   folder without checkpoints or a run folder given instead of its ``nerfstudio_models`` raise :class:`InputError`
   naming the file and what to do; a checkpoint of the other preset names both presets' widths.
+* Ctrl-C (``setup`` / ``train``) prints one line and exits 130, naming the last complete checkpoint; closing the
+  viewer after training exits normally. Step counts below 1 are an InputError before anything is read.
 * :class:`GSMSDRTrainerConfig` checks ``load_dir`` when it is assigned after construction: nerfstudio's
   ``eval_setup`` (``ns-eval``, ``ns-viewer``, ``gsmsdr-eval``, ``gsmsdr-export``) does that right before its own
   loader, which names no file when it fails.
