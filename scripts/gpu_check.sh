@@ -4,9 +4,11 @@
 # training steps per method, and train `ns-train gsmsdr-lite` to the end of its schedule against plain Gaussians.
 # Everything it measures goes to OUT/results.md; logs to OUT/check.log and OUT/cuda-tests.log.
 #
-# Prepare on a machine with network (here, on the CPU), then carry .gpu/wheels and .gpu/scenes (about 58 MiB):
+# Prepare on a machine with network (here, on the CPU), then carry .gpu/wheels, .gpu/scenes and .gpu/commit (about
+# 58 MiB; .gpu/ is git-ignored):
 #   .venv/bin/python scripts/gpu_wheelhouse.py .gpu    # wheels for the device's Python (3.12; --python to change)
 #   .venv/bin/python scripts/gpu_scenes.py .gpu        # the generated scenes below (CPU, about 10 minutes)
+#   git rev-parse --short HEAD > .gpu/commit            # the commit results.md names
 # Run on the GPU machine, from the repository root:
 #   bash scripts/gpu_check.sh OUT [STAGE ...]
 # STAGE: install build tests step lite (default: all of them, in that order; install and build are needed by the
