@@ -246,3 +246,52 @@ def test_temporary_names_carry_the_pid_and_keep_the_extension(tmp_path):
     seen = []
     atomic.write_file_atomic(tmp_path / "plot.png", lambda tmp: seen.append(tmp) or Path(tmp).write_bytes(b"x"))
     assert seen[0].name.startswith(f".plot.png.tmp-{os.getpid()}-") and seen[0].suffix == ".png"
+
+
+# -- every writer on a full disk ---------------------------------------------------------------------------------
+
+
+def _fill(disk: Path) -> None:
+    """Fill the file system of ``disk`` up to its last byte."""
+    with open(disk / "filler", "wb", buffering=0) as f:  # unbuffered: nothing left to flush at close
+        try:
+            while True:
+                f.write(b"\0" * 4096)
+        except OSError as e:
+            assert e.errno == errno.ENOSPC
+
+
+def test_every_writer_on_a_full_disk_says_so_in_one_line_and_leaves_nothing(tiny_scene, trained_run, tmp_path,
+                                                                            tmpfs):  # fmt: skip
+    """Each command's output on a full tmpfs: exit 1, one error line about the full disk (no traceback), and nothing
+    on that disk but what was there. The commands run at once (each is mostly interpreter start-up)."""
+    out = tmpfs(512)
+    in_place = tmpfs(4096)  # gsmsdr-estimate writes into the scene itself
+    scene = in_place / "scene"
+    shutil.copytree(tiny_scene, scene, ignore=shutil.ignore_patterns("degradation*.json"))
+    _fill(out)
+    _fill(in_place)
+    before = {disk: sorted(p.relative_to(disk) for p in disk.rglob("*")) for disk in (out, in_place)}
+    commands = {
+        "gsmsdr-synth": ["--out", out / "synth", "--num-views", "4", "--width", "32", "--height", "24"],
+        "gsmsdr-degrade": ["--input", tiny_scene, "--out", out / "degraded", "--effect", "motion"],
+        "gsmsdr-estimate": ["--scene", scene],
+        "gsmsdr-eval": ["--load-config", trained_run.config, "--output-path", out / "eval.json", "--no-align-poses"],
+        "gsmsdr-export": ["--load-config", trained_run.config, "--output", out / "scene.ply"],
+        "gsmsdr-bench": ["step", "--data", tiny_scene, "--methods", "plain", "--warmup", "1", "--steps", "1",
+                         "--out", out / "step", "--work-dir", tmp_path / "bench-work"],
+    }
+    procs = {
+        tool: subprocess.Popen([str(BIN / tool), *map(str, args)], cwd=tmp_path, env=ENV, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)  # fmt: skip
+        for tool, args in commands.items()
+    }
+    for tool, proc in procs.items():
+        stdout, stderr = proc.communicate(timeout=scaled(600))
+        output = stdout + stderr
+        assert proc.returncode == 1, f"{tool}: exit {proc.returncode}\n{output[-3000:]}"
+        assert "Traceback" not in output, f"{tool}:\n{output[-3000:]}"
+        errors = [line for line in output.splitlines() if line.startswith("error:")]
+        assert len(errors) == 1 and "no space left on the disk" in errors[0], f"{tool}:\n{output[-3000:]}"
+    for disk, entries in before.items():
+        assert sorted(p.relative_to(disk) for p in disk.rglob("*")) == entries, disk

@@ -172,7 +172,6 @@ def write_results(out: Path, rows: Sequence[Dict[str, object]], header: str) -> 
     import io
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=list(COLUMNS), lineterminator="\n")
     writer.writeheader()

@@ -96,7 +96,7 @@ def write_file_atomic(path: Path, write: Callable[[Path], Any]) -> Path:
     The temporary name keeps the target's extension, for writers that choose the format from it.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    created = _make_parents(path.parent)
     remove_stale_temporaries(path.parent, f".{path.name}.")
     tmp = _temp_name(path, "tmp")
     tmp = tmp.with_name(tmp.name + path.suffix)
@@ -107,8 +107,25 @@ def write_file_atomic(path: Path, write: Callable[[Path], Any]) -> Path:
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
+        for folder in reversed(created):  # the folders made for this file, if nothing else went into them
+            try:
+                folder.rmdir()
+            except OSError:
+                break
         raise
     return path
+
+
+def _make_parents(folder: Path) -> List[Path]:
+    """``mkdir -p folder``; returns the folders it created, outermost first."""
+    missing = []
+    while not folder.exists() and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    missing.reverse()
+    for created in missing:
+        created.mkdir(exist_ok=True)
+    return missing
 
 
 def temp_sibling_dir(target: Path, tag: str = "partial") -> Path:
