@@ -129,6 +129,7 @@ def test_a_checkpoint_on_a_full_tmpfs_names_the_file_and_leaves_nothing(tmpfs):
     path.parent.mkdir(parents=True)
     with pytest.raises(DiskFullError, match=rf"no space left on the disk to save checkpoint '{path}'") as caught:
         save_checkpoint_atomic({"step": 3, "w": torch.zeros(2_000_000)}, path)
+    assert "(it needs about 7.6 MiB, " in str(caught.value)  # 2M float32
     assert caught.value.errno == errno.ENOSPC
     assert sorted(p.name for p in (disk / "run").iterdir()) == ["nerfstudio_models"]
     assert not list(path.parent.iterdir())
@@ -295,3 +296,11 @@ def test_every_writer_on_a_full_disk_says_so_in_one_line_and_leaves_nothing(tiny
         assert len(errors) == 1 and "no space left on the disk" in errors[0], f"{tool}:\n{output[-3000:]}"
     for disk, entries in before.items():
         assert sorted(p.relative_to(disk) for p in disk.rglob("*")) == entries, disk
+
+
+def test_a_checkpoints_size_counts_each_tensor_storage_once():
+    from gsmsdr_ns.plugin.checkpoint import tensor_bytes
+
+    weights = torch.zeros(1000)
+    payload = {"step": 3, "model": {"w": weights, "w_view": weights[:10]}, "optim": [torch.ones(5, dtype=torch.int64)]}
+    assert tensor_bytes(payload) == 1000 * 4 + 5 * 8

@@ -174,13 +174,32 @@ def load_checkpoint_file(path: Path) -> Dict[str, Any]:
                          f"{_fallback_advice(path)}") from e  # fmt: skip
 
 
-def _disk_full_error(path: Path, error: OSError) -> DiskFullError:
+def tensor_bytes(payload: Any) -> int:
+    """Bytes of the tensor storages in a nested dict / list / tuple (each storage counted once): about the size of a
+    checkpoint of ``payload``."""
+    seen, total, todo = set(), 0, [payload]
+    while todo:
+        item = todo.pop()
+        if isinstance(item, torch.Tensor):
+            storage = item.untyped_storage()
+            if storage.data_ptr() not in seen:
+                seen.add(storage.data_ptr())
+                total += storage.nbytes()
+        elif isinstance(item, Mapping):
+            todo.extend(item.values())
+        elif isinstance(item, (list, tuple)):
+            todo.extend(item)
+    return total
+
+
+def _disk_full_error(path: Path, error: OSError, needed: int) -> DiskFullError:
     try:
         free = f"{format_bytes(shutil.disk_usage(path.parent).free)} free"
     except OSError:
         free = "free space unknown"
     full = DiskFullError(
-        f"gsmsdr: no space left on the disk to save checkpoint '{path}' ({free}); nothing was written, the "
+        f"gsmsdr: no space left on the disk to save checkpoint '{path}' (it needs about {format_bytes(needed)}, "
+        f"{free}); nothing was written, the "
         f"checkpoints already in '{path.parent}' are kept. Free some space, or train with --output-dir on a disk "
         f"with room (resume with --load-dir {path.parent})."
     )
@@ -211,7 +230,7 @@ def save_checkpoint_atomic(payload: Mapping[str, Any], path: Path) -> Path:
         tmp.unlink(missing_ok=True)
         full = disk_full_cause(e)
         if full is not None:
-            raise _disk_full_error(path, full) from full
+            raise _disk_full_error(path, full, tensor_bytes(payload)) from full
         raise
     _fsync_dir(path.parent)
     return path
