@@ -16,7 +16,7 @@ import pytest
 from conftest import TRAIN_FLAGS, run_cli
 from gsmsdr_ns.bench.sfm import llff_cameras_opencv, pose_errors
 from gsmsdr_ns.io.colmap import read_colmap
-from gsmsdr_ns.io.errors import InputWarning
+from gsmsdr_ns.io.errors import InputError, InputWarning
 from gsmsdr_ns.io.images import list_images, read_image, write_image
 from gsmsdr_ns.data.layout import detect_layout
 from gsmsdr_ns.process import ProcessConfig, RegistrationError, choose_matching, process_photos
@@ -268,3 +268,30 @@ def test_photos_that_do_not_register_are_blamed_on_blur_only_when_they_are_blurr
     message = str(info.value)
     assert "5.png look blurred next to the others: try a smaller --max-image-size" in message
     assert "2.png look" not in message and "add a few more" not in message
+
+
+def test_a_scene_whose_test_view_copies_a_training_image_is_refused(tiny_scene: Path, tmp_path: Path):
+    """nerfstudio's split of the tiny COLMAP scene holds out views 0 and 8: view 8's file replaced by a JPEG copy
+    of view 3 is a test view that training has seen."""
+    from PIL import Image
+
+    from gsmsdr_ns.plugin.auto_dataparser import GSMSDRAutoDataParserConfig
+    from gsmsdr_ns.plugin.datamanager import GSMSDRDatamanagerConfig
+
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    copy = Image.open(scene / "images" / "frame_00003.png").convert("RGB")
+    copy.save(scene / "images" / "frame_00008.png", format="JPEG", quality=92)  # same name, re-encoded content
+
+    def setup(refuse: bool):
+        parser = GSMSDRAutoDataParserConfig(data=scene, estimate_degradations=False, refuse_copied_test_views=refuse)
+        config = GSMSDRDatamanagerConfig(dataparser=parser, cache_images="gpu")
+        config.data = scene
+        return config.setup(device="cpu")
+
+    with pytest.raises(InputError, match=r"test view\(s\) of '.*scene' that copy a training image: 'frame_00008.png' "
+                                         r"\(= training image '.*frame_00003.png'\)"):  # fmt: skip
+        setup(refuse=True)
+    with pytest.warns(InputWarning, match="refuse-copied-test-views False trains anyway"):
+        datamanager = setup(refuse=False)
+    assert len(datamanager.eval_dataset) == 2

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import warnings
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +35,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from gsmsdr_ns.data.degradation import record_from_entry, unknown_record
 from gsmsdr_ns.data.layout import LayoutChoice, detect_layout
 from gsmsdr_ns.data.transforms import check_transforms_json, transforms_file
+from gsmsdr_ns.io.errors import InputError, InputWarning
 from gsmsdr_ns.plugin.dataparser import GSMSDRDataParserConfig, check_image_files
 from gsmsdr_ns.plugin.deblur_dataparser import DeblurNerfDataParserConfig
 
@@ -53,6 +55,9 @@ class GSMSDRAutoDataParserConfig(DataParserConfig):
     """Options of nerfstudio's reader, used for transforms.json scenes."""
     estimate_degradations: bool = True
     """Estimate a degradation record for each training image that has none (cached next to the images' folder)."""
+    refuse_copied_test_views: bool = True
+    """Refuse a scene whose test split holds a copy (byte-identical, re-encoded or resized) of a training image: its
+    score would measure memory. False: warn only. Costs one decode of every image when the splits are read."""
     verify_images: bool = True
     """For transforms.json scenes: decode every image of a split once while parsing, so missing, truncated or
     corrupt files fail before training with their name (the other readers have their own verify_images)."""
@@ -90,10 +95,25 @@ class GSMSDRAutoDataParser(DataParser):
             self.choice, self._delegate = choice, sub.setup()
         return self._delegate
 
+    def _check_copied_test_views(self, train: List[Path], test: List[Path]) -> None:
+        from gsmsdr_ns.process.duplicates import copies_across
+
+        pairs = copies_across(train, test)
+        if not pairs:
+            return
+        message = _copied_test_views_message(pairs, Path(self.config.data))
+        if self.config.refuse_copied_test_views:
+            raise InputError(message)
+        warnings.warn(InputWarning(message), stacklevel=2)
+
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         outputs = self.delegate.get_dataparser_outputs(split=split, **kwargs)
         if self.choice is not None and self.choice.reader == "nerfstudio-data" and self.config.verify_images:
             check_image_files(outputs.image_filenames, f"'{transforms_file(self.config.data)}'")
+        if split == "train":
+            self._train_images = list(outputs.image_filenames)
+        elif getattr(self, "_train_images", None):
+            self._check_copied_test_views(self._train_images, list(outputs.image_filenames))
         if split == "train" and self.config.estimate_degradations:
             records = outputs.metadata.get("degradations")
             if records is None:
@@ -101,6 +121,14 @@ class GSMSDRAutoDataParser(DataParser):
             if any(r["degraded"] is None for r in records):
                 outputs.metadata["degradations"] = estimated_records(outputs.image_filenames, records)
         return outputs
+
+
+def _copied_test_views_message(pairs, data: Path) -> str:
+    shown = ", ".join(f"'{test.name}' (= training image '{train}')" for test, train in pairs[:10])
+    more = f", ... ({len(pairs)} in all)" if len(pairs) > 10 else ""
+    return (f"gsmsdr: test view(s) of '{data}' that copy a training image: {shown}{more}. Their scores would measure "
+            "memory, not reconstruction: remove the copies (or retake those views). "
+            "--pipeline.datamanager.dataparser.refuse-copied-test-views False trains anyway.")
 
 
 def estimate_folder(folder: Path, names: List[str]) -> Path:

@@ -2,14 +2,15 @@
 
 Two copies of a photo under different names would land one in the training views and one among the held-out test
 views, and the test scores would measure memory instead of reconstruction. ``gsmsdr-process`` keeps the first
-name of each set (sorted order) and leaves the others out, with a warning naming them.
+name of each set (sorted order) and leaves the others out, with a warning naming them (:func:`find_duplicates`);
+the gsmsdr dataparser refuses a scene whose test split holds a copy of a training image (:func:`copies_across`).
 """
 
 from __future__ import annotations
 
 import hashlib
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Tuple
 
 import numpy as np
 
@@ -70,4 +71,30 @@ def find_duplicates(images_dir: Path, names: List[str]) -> Dict[str, str]:
     return duplicates
 
 
-__all__ = ["NEAR_IDENTICAL", "THUMBNAIL_SIZE", "find_duplicates", "grey_thumbnail"]
+def copies_across(train: List[Path], test: List[Path]) -> List[Tuple[Path, Path]]:
+    """(test image, training image) pairs where a test image is a copy of a training image (byte-identical, or
+    thumbnails within :data:`NEAR_IDENTICAL`): a test view that training has seen."""
+    from gsmsdr_ns.io.images import read_image
+
+    if not train or not test:
+        return []
+    digests = {_file_digest(Path(p)): Path(p) for p in train}
+    pairs, unmatched = [], []
+    for path in map(Path, test):
+        same = digests.get(_file_digest(path))
+        if same is not None:
+            pairs.append((path, same))
+        else:
+            unmatched.append(path)
+    if unmatched:
+        train_paths = list(map(Path, train))
+        thumbnails = np.stack([grey_thumbnail(read_image(p)) for p in train_paths])
+        for path in unmatched:
+            differences = np.abs(thumbnails - grey_thumbnail(read_image(path))).mean(axis=(1, 2))
+            closest = int(np.argmin(differences))
+            if differences[closest] <= NEAR_IDENTICAL:
+                pairs.append((path, train_paths[closest]))
+    return pairs
+
+
+__all__ = ["NEAR_IDENTICAL", "THUMBNAIL_SIZE", "copies_across", "find_duplicates", "grey_thumbnail"]
