@@ -1,4 +1,6 @@
-"""The input-error and input-warning types shared by every reader (core tools and nerfstudio dataparsers)."""
+"""The error and warning types shared by every reader and writer (core tools and nerfstudio glue), and what a failed
+write says: a full disk or a refused write found behind any exception (:func:`storage_error_line`), and a check for
+room before a writer that a full disk would stop uncleanly (:func:`require_free_space`)."""
 
 from __future__ import annotations
 
