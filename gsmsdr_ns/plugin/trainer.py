@@ -82,10 +82,8 @@ class GSMSDRTrainer(Trainer):
         check_step_options(self.config)
         try:
             super().setup(test_mode)
-        except KeyboardInterrupt:
-            _exit_interrupted("interrupted while setting up; nothing was trained")
-        except Exception as e:
-            # a library can turn Ctrl-C into an error of its own (pycolmap's import: "Cannot import the C++ backend")
+        except BaseException as e:
+            # Ctrl-C itself, or an error a library made of it (pycolmap's import: "Cannot import the C++ backend")
             if any(isinstance(cause, KeyboardInterrupt) for cause in exception_chain(e)):
                 _exit_interrupted("interrupted while setting up; nothing was trained")
             raise

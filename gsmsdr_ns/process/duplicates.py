@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
-from typing import Dict, List, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -40,6 +40,15 @@ def grey_thumbnail(image: np.ndarray) -> np.ndarray:
     return resize(grey, THUMBNAIL_SIZE, anti_aliasing=True, preserve_range=True).astype(np.float32)
 
 
+def _closest_copy(thumbnails: List[np.ndarray], thumbnail: np.ndarray) -> Optional[int]:
+    """Index of the thumbnail within :data:`NEAR_IDENTICAL` of ``thumbnail`` (the closest one), else None."""
+    if not thumbnails:
+        return None
+    differences = np.abs(np.stack(thumbnails) - thumbnail).mean(axis=(1, 2))
+    closest = int(np.argmin(differences))
+    return closest if differences[closest] <= NEAR_IDENTICAL else None
+
+
 def find_duplicates(images_dir: Path, names: List[str]) -> Dict[str, str]:
     """Photos of ``names`` (sorted) that duplicate an earlier one: ``{duplicate: the name it duplicates}``.
 
@@ -60,12 +69,10 @@ def find_duplicates(images_dir: Path, names: List[str]) -> Dict[str, str]:
             continue
         first_with_digest[digest] = name
         thumbnail = grey_thumbnail(read_image(images_dir / name))
-        if thumbnails:
-            differences = np.abs(np.stack(thumbnails) - thumbnail).mean(axis=(1, 2))
-            closest = int(np.argmin(differences))
-            if differences[closest] <= NEAR_IDENTICAL:
-                duplicates[name] = kept[closest]
-                continue
+        closest = _closest_copy(thumbnails, thumbnail)
+        if closest is not None:
+            duplicates[name] = kept[closest]
+            continue
         kept.append(name)
         thumbnails.append(thumbnail)
     return duplicates
@@ -88,11 +95,10 @@ def copies_across(train: List[Path], test: List[Path]) -> List[Tuple[Path, Path]
             unmatched.append(path)
     if unmatched:
         train_paths = list(map(Path, train))
-        thumbnails = np.stack([grey_thumbnail(read_image(p)) for p in train_paths])
+        thumbnails = [grey_thumbnail(read_image(p)) for p in train_paths]
         for path in unmatched:
-            differences = np.abs(thumbnails - grey_thumbnail(read_image(path))).mean(axis=(1, 2))
-            closest = int(np.argmin(differences))
-            if differences[closest] <= NEAR_IDENTICAL:
+            closest = _closest_copy(thumbnails, grey_thumbnail(read_image(path)))
+            if closest is not None:
                 pairs.append((path, train_paths[closest]))
     return pairs
 
