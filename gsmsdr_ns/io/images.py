@@ -55,7 +55,13 @@ def resolve_image(folder: Path, name: str, listed_in: str) -> Path:
 
 def read_image_size(path: Path) -> Tuple[int, int]:
     """(width, height) of an image file from its header; :class:`InputError` naming the file if unusable."""
-    from PIL import Image  # header-only size read; scikit-image has none
+    return _read_header(path)[:2]
+
+
+def _read_header(path: Path) -> Tuple[int, int, str]:
+    """(width, height, Pillow mode) of an image file from its header; :class:`InputError` naming the file if
+    unusable."""
+    from PIL import Image  # header-only read; scikit-image has none
 
     path = Path(path)
     if not path.is_file():
@@ -66,7 +72,7 @@ def read_image_size(path: Path) -> Tuple[int, int]:
         )
     try:
         with Image.open(path) as image:
-            width, height = image.size
+            (width, height), mode = image.size, image.mode
     except Exception as err:  # UnidentifiedImageError, OSError, SyntaxError, DecompressionBombError, ...
         raise InputError(
             f"gsmsdr: cannot read image file '{path}': {err}. The file is not a readable image; re-copy or "
@@ -74,7 +80,7 @@ def read_image_size(path: Path) -> Tuple[int, int]:
         ) from err
     if width <= 0 or height <= 0:
         raise InputError(f"gsmsdr: image file '{path}' has zero size ({width}x{height} px).")
-    return int(width), int(height)
+    return int(width), int(height), mode
 
 
 def _png_bit_depth(path: Path) -> Optional[int]:
@@ -94,16 +100,20 @@ CONVERTED_MODES = {"CMYK": "RGB", "YCbCr": "RGB", "LAB": "RGB", "HSV": "RGB", "L
 channels would otherwise pass for RGBA), or there are two of them (grey + alpha)."""
 
 
-def _convert_colour_space(path: Path) -> Optional[np.ndarray]:
-    """The image converted to RGB / RGBA when its Pillow mode is one of :data:`CONVERTED_MODES`, else None."""
+def _decode(path: Path, mode: str) -> np.ndarray:
+    """Pixel data of an image file: Pillow's conversion to RGB(A) for the modes of :data:`CONVERTED_MODES`,
+    scikit-image's decoder otherwise (16-bit colour PNGs then re-read at their depth)."""
     from PIL import Image
+    import skimage.io
 
-    try:
+    target = CONVERTED_MODES.get(mode)
+    if target is not None:
         with Image.open(path) as image:
-            target = CONVERTED_MODES.get(image.mode)
-            return None if target is None else np.asarray(image.convert(target))
-    except Exception:  # unreadable by Pillow: the decoder's own result (and errors) stand
-        return None
+            return np.asarray(image.convert(target))
+    image = np.asarray(skimage.io.imread(path))
+    if image.dtype == np.uint8 and _png_bit_depth(path) == 16:
+        image = _decode_png16(path, image)
+    return image
 
 
 def _decode_png16(path: Path, reduced: np.ndarray) -> np.ndarray:
@@ -126,22 +136,15 @@ def decode_image(path: Path, expected_size: Optional[Tuple[int, int]] = None) ->
     Missing, empty, unidentifiable, truncated or corrupt files, unsupported channel counts and (when
     ``expected_size`` = (width, height) is given) a size other than the camera's are :class:`InputError`.
     """
-    import skimage.io
-
     path = Path(path)
-    read_image_size(path)  # clear messages for missing / empty / unidentifiable files
+    mode = _read_header(path)[2]  # clear messages for missing / empty / unidentifiable files
     try:
-        image = np.asarray(skimage.io.imread(path))
+        image = _decode(path, mode)
     except Exception as err:  # the decoders raise many types (OSError, ValueError, SyntaxError, ...)
         raise InputError(
             f"gsmsdr: cannot read image file '{path}': {err}. The file is unreadable or truncated; re-copy or "
             "re-export it."
         ) from err
-    if image.dtype == np.uint8 and _png_bit_depth(path) == 16:
-        image = _decode_png16(path, image)
-    converted = _convert_colour_space(path)
-    if converted is not None:
-        image = converted
     if image.ndim == 2:
         image = image[:, :, None]
     if image.ndim == 3 and image.shape[2] == 1:
