@@ -1,5 +1,5 @@
 """JIT-built C++/OpenMP CPU extensions, shared by the rasterizer (`render.pixels_cpp`) and the blur kernels
-(`blur.kernels_cpp`).
+(`ops.pixel_kernels_cpp`).
 
 Each extension is one .cpp file registering its ops with TORCH_LIBRARY. It is built through
 torch.utils.cpp_extension.load, like gsplat's CUDA code, into ~/.cache/gsmsdr_ns/torch_extensions/<torch version>/<name>

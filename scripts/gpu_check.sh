@@ -74,9 +74,9 @@ if has_stage build; then
   fi
   say "build: gsplat's CUDA kernels (TORCH_CUDA_ARCH_LIST=$TORCH_CUDA_ARCH_LIST, MAX_JOBS=$MAX_JOBS), and our C++ CPU kernels"
   python3 - > "$WORK/cpu-ext.log" 2>&1 <<'EOF' &
-from gsmsdr_ns.blur.disk_kernels_cpp import EXTENSION as disk
-from gsmsdr_ns.blur.grid_kernels import EXTENSION as grid
-from gsmsdr_ns.blur.kernels_cpp import EXTENSION as pixel
+from gsmsdr_ns.ops.disk_defocus_cpp import EXTENSION as disk
+from gsmsdr_ns.ops.grid_kernels import EXTENSION as grid
+from gsmsdr_ns.ops.pixel_kernels_cpp import EXTENSION as pixel
 from gsmsdr_ns.render.pixels_cpp import EXTENSION as raster
 
 for extension in (raster, pixel, grid, disk):

@@ -15,9 +15,10 @@ from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo, kernel_prior_logits, kernel_upsample_matrix
-from gsmsdr_ns.blur.kernels import apply_image_kernels, apply_pixel_kernels
+from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels, apply_pixel_kernels
 from gsmsdr_ns.blur.maan import GAKA, MCA, SAFM, BAGSFeatures, RGBDFeatures, normalize_depth, positional_encoding_2d
-from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, effective_factor, resolution_loss
+from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, effective_factor
+from gsmsdr_ns.ops.mixres import resolution_loss
 
 NUM_VIEWS = 5
 
@@ -267,7 +268,7 @@ def test_shared_dict_hooks():
 def test_kernel_centroids_measure_the_shift_a_kernel_applies():
     """A kernel's centre of mass is the shift it applies to an image: blurring a ramp by it moves the ramp by that
     much (away from the border), and a symmetric kernel has its centre on the pixel."""
-    from gsmsdr_ns.blur.kernels import apply_pixel_kernels, kernel_centroids
+    from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels, kernel_centroids
 
     K, H, W = 5, 12, 14
     g = torch.Generator().manual_seed(0)
@@ -536,7 +537,7 @@ def test_resolution_loss_model_identity_residual_equals_the_operator():
 
 
 def test_resolution_loss_is_the_degrade_tools_operator_and_accepts_fractional_factors():
-    from gsmsdr_ns.degrade.kernels import apply_mixres
+    from gsmsdr_ns.ops.mixres import apply_mixres
 
     render = torch.rand(2, 3, 37, 50, generator=torch.Generator().manual_seed(2))
     for f in (1, 2, 3, 4):

@@ -152,8 +152,8 @@ def _require_cpp(extension_available, what: str) -> None:
 
 @pytest.mark.parametrize("K", [5, 17])
 def test_pixel_kernels_match_the_cpu_kernel(K):
-    from gsmsdr_ns.blur.kernels import apply_pixel_kernels
-    from gsmsdr_ns.blur.kernels_cpp import pixel_kernels_cpp_available
+    from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels
+    from gsmsdr_ns.ops.pixel_kernels_cpp import pixel_kernels_cpp_available
 
     _require_cpp(pixel_kernels_cpp_available, "pixel-kernel op")
     g = torch.Generator().manual_seed(K)
@@ -168,7 +168,7 @@ def test_pixel_kernels_match_the_cpu_kernel(K):
 
 @pytest.mark.parametrize("factor", [2, 4])
 def test_grid_kernels_match_the_cpu_kernel(factor):
-    from gsmsdr_ns.blur.grid_kernels import apply_grid_kernels, grid_kernels_cpp_available, grid_size
+    from gsmsdr_ns.ops.grid_kernels import apply_grid_kernels, grid_kernels_cpp_available, grid_size
 
     _require_cpp(grid_kernels_cpp_available, "grid-kernel op")
     K, H, W = 9, 41, 58
@@ -184,8 +184,8 @@ def test_grid_kernels_match_the_cpu_kernel(factor):
 
 @pytest.mark.parametrize("occluding", [True, False])
 def test_thin_lens_op_matches_the_cpu_kernel(occluding):
-    from gsmsdr_ns.blur.defocus_op import apply_occluding_defocus, apply_soft_disk_defocus
-    from gsmsdr_ns.blur.disk_kernels_cpp import disk_kernels_cpp_available
+    from gsmsdr_ns.ops.disk_defocus import apply_occluding_defocus, apply_soft_disk_defocus
+    from gsmsdr_ns.ops.disk_defocus_cpp import disk_kernels_cpp_available
 
     _require_cpp(disk_kernels_cpp_available, "thin-lens defocus op")
     K, H, W = 9, 33, 47

@@ -1,4 +1,4 @@
-"""The deconvolved residual (``blur/deconvolved_loss.py``): the residual weighted by the inverse of the blur's spectrum."""
+"""The deconvolved residual (``ops/deconvolved_loss.py``): the residual weighted by the inverse of the blur's spectrum."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from gsmsdr_ns.blur.deconvolved_loss import deconvolved_residual, fast_fft_length, mean_kernel
+from gsmsdr_ns.ops.deconvolved_loss import deconvolved_residual, fast_fft_length, mean_kernel
 
 
 def gaussian_kernel(K: int, sigma: float) -> torch.Tensor:

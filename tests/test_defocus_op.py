@@ -1,4 +1,4 @@
-"""The fused thin-lens defocus ops (gsmsdr_ns.blur.defocus_op) against the unfused kernels they replace.
+"""The fused thin-lens defocus ops (gsmsdr_ns.ops.disk_defocus) against the unfused kernels they replace.
 
 Reference: ``apply_pixel_kernels(image, occluding_disk_kernels(...))`` (and ``soft_disk_kernels``), in float64, values
 and gradients; the C++ kernel and the PyTorch twin both; and what is saved for the backward (no K*K maps).
@@ -9,10 +9,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gsmsdr_ns.blur.defocus import occluding_disk_kernels, soft_disk_kernels
-from gsmsdr_ns.blur.defocus_op import apply_occluding_defocus, apply_soft_disk_defocus
-from gsmsdr_ns.blur.disk_kernels_cpp import disk_kernels_cpp_error
-from gsmsdr_ns.blur.kernels import apply_pixel_kernels
+from gsmsdr_ns.ops.disk_kernels import occluding_disk_kernels, soft_disk_kernels
+from gsmsdr_ns.ops.disk_defocus import apply_occluding_defocus, apply_soft_disk_defocus
+from gsmsdr_ns.ops.disk_defocus_cpp import disk_kernels_cpp_error
+from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels
 
 BACKENDS = ("cpp", "torch")
 

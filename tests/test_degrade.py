@@ -48,7 +48,7 @@ from gsmsdr_ns.degrade.cli import entrypoint as degrade_entrypoint
 from gsmsdr_ns.degrade.cli import parse as degrade_parse
 from gsmsdr_ns.degrade.trajectory import rotvec_to_matrix
 from gsmsdr_ns.degrade.variants import BUILTIN_PRESETS
-from gsmsdr_ns.synth.cli import parse as synth_parse
+from gsmsdr_ns.degrade.synth_cli import parse as synth_parse
 from gsmsdr_ns.io.colmap import read_colmap
 from gsmsdr_ns.io.errors import InputError
 

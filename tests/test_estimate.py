@@ -17,7 +17,8 @@ import torch
 from gsmsdr_ns.data.degradation import load_degradation_json, match_entries, record_from_entry
 from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.io.images import write_image
-from gsmsdr_ns.degrade.kernels import apply_mixres, convolve_psf, disk_blur, motion_kernel_from_trajectory
+from gsmsdr_ns.degrade.kernels import convolve_psf, disk_blur, motion_kernel_from_trajectory
+from gsmsdr_ns.ops.mixres import apply_mixres
 from gsmsdr_ns.estimate import EstimateConfig, estimate_degradations
 from gsmsdr_ns.estimate.cli import parse
 from gsmsdr_ns.estimate.edges import edge_width

@@ -1,4 +1,4 @@
-"""Kernels predicted on a coarse grid (blur/grid_kernels.py) and the blur field's ``feature_downsample``."""
+"""Kernels predicted on a coarse grid (ops/grid_kernels.py) and the blur field's ``feature_downsample``."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
-from gsmsdr_ns.blur.grid_kernels import (
+from gsmsdr_ns.ops.grid_kernels import (
     GridKernels,
     apply_grid_kernels,
     grid_kernels_cpp_available,
@@ -15,7 +15,7 @@ from gsmsdr_ns.blur.grid_kernels import (
     pool_to_grid,
     upsample_grid,
 )
-from gsmsdr_ns.blur.kernels import apply_pixel_kernels_unfold
+from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels_unfold
 
 needs_cpp = pytest.mark.skipif(not grid_kernels_cpp_available(), reason="no C++ compiler for the grid-kernel op")
 

@@ -636,7 +636,7 @@ def test_the_deconvolved_loss_weighs_a_blurred_views_residual_by_its_mean_kernel
     """A blurred view's loss gets ``blur_deconvolved``: the weight times the mean square of its residual weighted by
     the inverse of its mean kernel (the field's kernels blended with the mask); a sharp view gets none, nor does a
     blurred view with the weight at 0."""
-    from gsmsdr_ns.blur.deconvolved_loss import deconvolved_residual
+    from gsmsdr_ns.ops.deconvolved_loss import deconvolved_residual
 
     metadata = {"degradations": records("motion", 1) + records("sharp", 1)}
     camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)

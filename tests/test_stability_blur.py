@@ -19,7 +19,7 @@ from stability_common import (  # noqa: F401  (single_thread: autouse fixture)
 )
 
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
-from gsmsdr_ns.blur.kernels import apply_pixel_kernels, apply_pixel_kernels_unfold
+from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels, apply_pixel_kernels_unfold
 from gsmsdr_ns.blur.profile import ResolutionLossModel
 
 

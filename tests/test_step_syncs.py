@@ -174,7 +174,7 @@ def run_step(trainer, step: int) -> Dict:
 
 
 def test_blurred_steps_do_not_wait_for_the_device(build_trainer):
-    from gsmsdr_ns.blur.kernels_cpp import pixel_kernels_cpp_available, pixel_kernels_cpp_error
+    from gsmsdr_ns.ops.pixel_kernels_cpp import pixel_kernels_cpp_available, pixel_kernels_cpp_error
 
     assert pixel_kernels_cpp_available(), f"the op count assumes the C++ pixel-kernel op: {pixel_kernels_cpp_error()}"
     # the GPU default (on the CPU the check reads every step: a read costs no wait there)

@@ -10,17 +10,12 @@ import math
 import pytest
 import torch
 
-from gsmsdr_ns.blur.defocus import (
-    ThinLensDefocus,
-    lens_window,
-    occluding_disk_kernels,
-    soft_disk_kernels,
-    thin_lens_radius,
-)
+from gsmsdr_ns.blur.defocus import ThinLensDefocus, lens_window, thin_lens_radius
+from gsmsdr_ns.ops.disk_kernels import occluding_disk_kernels, soft_disk_kernels
 from gsmsdr_ns.blur.degradation_model import DegradationModel
 from gsmsdr_ns.blur.profile import DegradationProfile
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
-from gsmsdr_ns.blur.kernels import apply_pixel_kernels
+from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels
 from gsmsdr_ns.degrade.kernels import defocus_radius
 from gsmsdr_ns.blur.preview import kernel_spread
 

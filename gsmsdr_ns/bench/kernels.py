@@ -33,7 +33,7 @@ IMPLS = ("ours", "torch", "unfold")
 
 
 def _impl(name: str) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
-    from gsmsdr_ns.blur.kernels import apply_pixel_kernels, apply_pixel_kernels_unfold
+    from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels, apply_pixel_kernels_unfold
 
     if name == "ours":
         return apply_pixel_kernels

@@ -1,7 +1,7 @@
-"""GS-MSDR blur modelling: per-pixel blur kernels, the networks that predict them, and the degradation model that
-turns a sharp render into a training image's degraded photo."""
+"""GS-MSDR degradation modelling: the networks and learnt lens and shake that predict each training image's blur, and
+the degradation model that turns a sharp render into that image's degraded photo. The operators they apply (pixel,
+grid and disk kernels, the mixed-resolution down-up, the deconvolved loss) are in :mod:`gsmsdr_ns.ops`."""
 
-from gsmsdr_ns.blur.kernels import ApplyPixelKernels, apply_pixel_kernels, apply_pixel_kernels_unfold, pixel_kernel_size
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.hpko import HPKOHeads, HPKOScheduler, ScaleInfo
 from gsmsdr_ns.blur.profile import (
@@ -9,9 +9,8 @@ from gsmsdr_ns.blur.profile import (
     ResolutionLossModel,
     describe_profiles,
     effective_factor,
-    resolution_loss,
     training_profiles,
 )
-from gsmsdr_ns.blur.defocus import ThinLensDefocus, occluding_disk_kernels, soft_disk_kernels, thin_lens_radius
+from gsmsdr_ns.blur.defocus import ThinLensDefocus, thin_lens_radius
 from gsmsdr_ns.blur.degradation_model import DegradationModel, DegradationPlan
 from gsmsdr_ns.blur.shake import CameraShake, apply_camera_shake, rotation_homographies

@@ -22,10 +22,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from gsmsdr_ns.blur.deconvolved_loss import blend_with_identity, deconvolved_residual, mean_kernel
+from gsmsdr_ns.ops.deconvolved_loss import blend_with_identity, deconvolved_residual, mean_kernel
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
-from gsmsdr_ns.blur.grid_kernels import GridKernels, as_dense
-from gsmsdr_ns.blur.kernels import kernel_centroids
+from gsmsdr_ns.ops.grid_kernels import GridKernels, as_dense
+from gsmsdr_ns.ops.pixel_kernels import kernel_centroids
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo
 from gsmsdr_ns.blur.maan import host_checked_view_ids
 from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
@@ -264,7 +264,7 @@ class DegradationModel(nn.Module):
         """Add the blur field's terms when it ran: ``blur_mask_reg`` (``outputs["blur_mask"]``),
         ``blur_kernel_centre`` (``outputs["blur_kernel_centroids"]``) and, given the training ``image`` [H, W, 3]
         the degraded ``outputs["rgb"]`` is compared with, ``blur_deconvolved`` (``outputs["blur_kernel_mean"]``,
-        :mod:`gsmsdr_ns.blur.deconvolved_loss`)."""
+        :mod:`gsmsdr_ns.ops.deconvolved_loss`)."""
         if self.blur_field is None:
             return loss_dict
         self.blur_field.get_loss_dict(loss_dict, outputs.get("blur_mask"), outputs.get("blur_kernel_centroids"))

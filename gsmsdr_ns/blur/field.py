@@ -29,9 +29,9 @@ from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 from torch import Tensor, nn
 
 from .defocus import ThinLensDefocus
-from .grid_kernels import GridKernels, apply_grid_kernels, pool_to_grid, upsample_grid
+from gsmsdr_ns.ops.grid_kernels import GridKernels, apply_grid_kernels, pool_to_grid, upsample_grid
 from .hpko import HPKOHeads, HPKOScheduler, ViewKernels, check_kernel_sizes
-from .kernels import apply_image_kernels, apply_pixel_kernels
+from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels, apply_pixel_kernels
 from .maan import MCA, BAGSFeatures, ContextualFeatures, RGBDFeatures, check_bchw, check_view_ids
 
 __all__ = ["BlurFieldConfig", "BlurField", "BlurFieldDims", "BlurFieldModules"]
@@ -162,7 +162,7 @@ class BlurFieldConfig:
     amount in every view). Images whose records give the exact mid-exposure pose of a simulated shake (generated
     and ``gsmsdr-degrade`` scenes) are not centred. 0: off."""
     deconvolved_loss_weight: float = 10.0
-    """Weight of the deconvolved residual loss (``blur/deconvolved_loss.py``) on images the field blurs: the mean
+    """Weight of the deconvolved residual loss (``ops/deconvolved_loss.py``) on images the field blurs: the mean
     squared residual weighted by the inverse of the image's mean kernel (loss ``blur_deconvolved``), so the detail the
     blur attenuates reaches the Gaussians at about full strength instead of attenuated twice. 0: off (the paper's
     loss alone)."""
@@ -428,7 +428,7 @@ class BlurField(nn.Module):
 
     def kernel_centre_loss(self, centroids: Tensor) -> Tensor:
         """Kernel-centre regulariser ``kernel_centre_weight * mean(|c|^2)`` of the kernels' centres of mass
-        (``centroids`` [B, 2, H, W] in pixels, :func:`~gsmsdr_ns.blur.kernels.kernel_centroids`)."""
+        (``centroids`` [B, 2, H, W] in pixels, :func:`~gsmsdr_ns.ops.pixel_kernels.kernel_centroids`)."""
         return self.config.kernel_centre_weight * centroids.square().sum(dim=1).mean()
 
     def get_loss_dict(

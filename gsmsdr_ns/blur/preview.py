@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from gsmsdr_ns.blur.kernels import kernel_centroids, kernel_tap_offsets, pixel_kernel_size
+from gsmsdr_ns.ops.pixel_kernels import kernel_centroids, kernel_tap_offsets, pixel_kernel_size
 
 __all__ = ["kernel_spread", "nearest_view", "preview_downscale", "coarsen_kernels"]
 

@@ -21,8 +21,8 @@ most for motion, so motion also asks for depth. A resolution loss of known or un
 factor is the same for every depth, so it does not.
 
 :class:`ResolutionLossModel` applies the degrade tool's mixed-resolution operator
-(``gsmsdr_ns.degrade.kernels.apply_mixres``: kornia antialiased bilinear downscale to round(H/f) x round(W/f),
-bilinear (or bicubic) upscale back, clamp to [0, 1]; :func:`resolution_loss`) and adds a small learned residual
+(:func:`gsmsdr_ns.ops.mixres.resolution_loss`: kornia antialiased bilinear downscale to round(H/f) x round(W/f),
+bilinear (or bicubic) upscale back, clamp to [0, 1]) and adds a small learned residual
 kernel, initialised to the identity, for any mismatch with how a real camera lost its resolution.
 """
 
@@ -34,23 +34,20 @@ from typing import Any, List, Literal, Mapping, Optional, Sequence, Union
 
 import torch
 import torch.nn.functional as F
-from kornia.geometry.transform import resize
 from torch import Tensor, nn
 
 from gsmsdr_ns.data.degradation_schema import ESTIMATED_MODEL
+from gsmsdr_ns.data.effects import DEGRADATION_MODES, KNOWN_EFFECTS, DegradationMode
+from gsmsdr_ns.ops.mixres import resolution_loss
 
 __all__ = [
     "DegradationProfile",
-    "ProfileMode",
     "effective_factor",
-    "resolution_loss",
     "ResolutionLossModel",
     "training_profiles",
     "describe_profiles",
 ]
 
-ProfileMode = Literal["auto", "motion", "defocus", "mixres", "sharp"]
-_MODES = ("auto", "motion", "defocus", "mixres", "sharp")
 
 
 @dataclass(frozen=True)
@@ -137,7 +134,7 @@ class DegradationProfile:
         effects = metadata.get("effects") or {}
         if not isinstance(effects, Mapping):
             raise ValueError(f"'effects' must be a dict, got {type(effects).__name__}")
-        unknown_effects = set(effects) - {"motion", "defocus", "mixres", "noise"}
+        unknown_effects = set(effects) - set(KNOWN_EFFECTS)
         if unknown_effects:
             raise ValueError(f"unknown degradation effect(s) {sorted(unknown_effects)}")
         if metadata.get("degraded", None) is None or not effects:
@@ -168,7 +165,7 @@ class DegradationProfile:
         return self.defocus and self.blur_kind_known
 
     @classmethod
-    def from_mode(cls, mode: ProfileMode, metadata: Optional[Mapping[str, Any]] = None) -> "DegradationProfile":
+    def from_mode(cls, mode: DegradationMode, metadata: Optional[Mapping[str, Any]] = None) -> "DegradationProfile":
         """Profile of one image under the model's ``degradation_mode``.
 
         * ``auto``: what the metadata says (:meth:`from_metadata`; unknown images get :meth:`unknown`);
@@ -178,8 +175,8 @@ class DegradationProfile:
 
         Test views (``split == "test"``) and images the metadata says are undegraded are sharp in every mode.
         """
-        if mode not in _MODES:
-            raise ValueError(f"degradation mode must be one of {_MODES}, got {mode!r}")
+        if mode not in DEGRADATION_MODES:
+            raise ValueError(f"degradation mode must be one of {DEGRADATION_MODES}, got {mode!r}")
         if mode == "sharp":
             return cls()
         known = cls.is_known(metadata)
@@ -212,28 +209,6 @@ def effective_factor(factor: float, downscale: float = 1.0) -> float:
     if factor < 1 or downscale <= 0:
         raise ValueError(f"factor must be >= 1 and downscale > 0, got {factor}, {downscale}")
     return factor / downscale
-
-
-def resolution_loss(image: Tensor, factor: float, upsample: str = "bilinear") -> Tensor:
-    """The degrade tool's mixed-resolution operator at any factor, differentiable. [B, C, H, W] -> [B, C, H, W]
-
-    ``factor <= 1`` returns ``image``; an integer factor is ``gsmsdr_ns.degrade.kernels.apply_mixres``. A fractional
-    factor (a known factor seen by a coarser render, e.g. 3 at 1/2 resolution) shrinks the same way (antialiased
-    bilinear to ``max(1, round(H / f)) x max(1, round(W / f))``), enlarges back with ``upsample`` and clamps to [0, 1].
-    """
-    if image.dim() != 4:
-        raise ValueError(f"image must be [B, C, H, W], got {list(image.shape)}")
-    if factor <= 1:
-        return image
-    if float(factor).is_integer():
-        # imported here: the degrade package pulls in its CLI's dependencies (tyro), which blur/ does not need
-        from gsmsdr_ns.degrade.kernels import apply_mixres
-
-        return apply_mixres(image, int(factor), upsample)
-    H, W = image.shape[-2:]
-    small = (max(1, round(H / factor)), max(1, round(W / factor)))
-    low = resize(image, small, interpolation="bilinear", antialias=True)
-    return resize(low, (H, W), interpolation=upsample, align_corners=False).clamp(0.0, 1.0)
 
 
 class ResolutionLossModel(nn.Module):
@@ -304,7 +279,7 @@ class ResolutionLossModel(nn.Module):
 
 
 def training_profiles(
-    mode: ProfileMode, metadata: Optional[Mapping[str, Any]], num_train: int
+    mode: DegradationMode, metadata: Optional[Mapping[str, Any]], num_train: int
 ) -> List[DegradationProfile]:
     """One profile per training image.
 

@@ -26,7 +26,7 @@ import warnings
 from pathlib import Path
 from typing import Any, Dict, Iterable, Optional
 
-from gsmsdr_ns.data.degradation_schema import KNOWN_EFFECTS, check_document  # noqa: F401 (KNOWN_EFFECTS re-exported)
+from gsmsdr_ns.data.degradation_schema import check_document
 from gsmsdr_ns.io.errors import InputError, InputWarning
 
 SUPPORTED_VERSIONS = (1,)

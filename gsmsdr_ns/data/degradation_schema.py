@@ -15,10 +15,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, Mapping, Optional, Tuple
 
+from gsmsdr_ns.data.effects import KNOWN_EFFECTS
 from gsmsdr_ns.io.errors import InputError
 
-KNOWN_EFFECTS = ("motion", "defocus", "mixres", "noise")
-"""Effect names of an entry's ``effects`` (and of the document's ``effects`` list)."""
 ESTIMATED_MODEL = "estimated"
 """``model`` of an effect the estimate wrote (no parameters are known)."""
 

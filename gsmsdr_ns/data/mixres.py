@@ -33,15 +33,27 @@ MANIFEST = "manifest.json"
 CACHE_FORMAT = 1
 
 
+def mixres_factors(n: int, seed: int | Sequence[int], factors: Sequence[int] = (4, 3, 2, 1)) -> np.ndarray:
+    """Split n views at random into len(factors) equal groups (sizes differ by at most one) -> factors [n] int.
+
+    Which groups get the remainder is random too; the same (n, seed, factors) always gives the same split.
+    """
+    if n < 0:
+        raise ValueError(f"n must be >= 0, got {n}")
+    if len(factors) == 0:
+        raise ValueError("factors must not be empty")
+    rng = np.random.default_rng(seed)
+    pattern = rng.permutation(np.asarray(factors, dtype=np.int64))
+    return rng.permutation(np.resize(pattern, n)) if n else np.zeros(0, dtype=np.int64)
+
+
 def assign_mixres_factors(num_images: int, seed: int, factors: Sequence[int] = MIXRES_FACTORS) -> np.ndarray:
     """Factor of each of ``num_images`` training images (in the given order, i.e. sorted by file name).
 
     The views are split at random into ``len(factors)`` equal groups (sizes differ by at most one; which groups get
     the remainder is random too), the same rule ``gsmsdr-degrade --effects mixres`` uses: both call
-    ``gsmsdr_ns.degrade.kernels.mixres_factors``.
+    :func:`mixres_factors`.
     """
-    from gsmsdr_ns.degrade.kernels import mixres_factors
-
     if any(int(f) < 1 for f in factors):
         raise ValueError(f"factors must be >= 1, got {list(factors)}")
     return np.asarray(mixres_factors(int(num_images), int(seed), [int(f) for f in factors]), dtype=np.int64)
@@ -49,8 +61,8 @@ def assign_mixres_factors(num_images: int, seed: int, factors: Sequence[int] = M
 
 def downscale_upscale(image: np.ndarray, factor: int) -> np.ndarray:
     """``[H, W, C]`` uint8 image shrunk by ``factor`` (antialiased bilinear, ``round(H / f) x round(W / f)``) and
-    enlarged back to H x W (bilinear), via ``gsmsdr_ns.degrade.kernels.apply_mixres``; factor 1 returns a copy."""
-    from gsmsdr_ns.degrade.kernels import apply_mixres
+    enlarged back to H x W (bilinear), via :func:`gsmsdr_ns.ops.mixres.apply_mixres`; factor 1 returns a copy."""
+    from gsmsdr_ns.ops.mixres import apply_mixres  # kornia only for the images that need it
 
     if image.dtype != np.uint8 or image.ndim != 3:
         raise ValueError(f"expected [H, W, C] uint8, got {image.dtype} {image.shape}")

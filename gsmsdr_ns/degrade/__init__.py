@@ -12,7 +12,6 @@ Public API:
 """
 
 from .config import (
-    EFFECTS,
     DefocusConfig,
     DegradeConfig,
     MixresConfig,
@@ -21,19 +20,19 @@ from .config import (
     load_preset,
     normalize_effects,
 )
+from ..data.mixres import mixres_factors
+from ..ops.mixres import apply_mixres
 from .kernels import (
     LayeredDefocus,
     PSFBlur,
     RotationalShakeBlur,
     add_noise,
     apply_defocus,
-    apply_mixres,
     convolve_psf,
     defocus_radius,
     disk_blur,
     disk_kernel,
     homography_blur,
-    mixres_factors,
     motion_kernel_from_trajectory,
     path_extent,
     plane_homography,
@@ -46,7 +45,6 @@ from .trajectory import ShakeTrajectory, calibrated_shake, pixel_paths
 from .variants import VARIANTS, generate_variant
 
 __all__ = [
-    "EFFECTS",
     "DegradeConfig",
     "MotionConfig",
     "DefocusConfig",

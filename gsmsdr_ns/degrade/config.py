@@ -14,14 +14,9 @@ from typing import Any, Literal, Tuple
 import tyro
 from typing_extensions import Annotated
 
+from ..data.effects import KNOWN_EFFECTS, SHARP_ALIASES
 from ..io.config import load_dataclass, read_yaml_mapping
 
-EFFECTS = ("motion", "defocus", "mixres", "noise")
-"""Valid effect names, in the order they are applied to an image (optics and camera motion, then the sensor)."""
-BLUR_EFFECTS = ("motion", "defocus", "mixres")
-"""Effects that `assignment="one_per_image"` distributes over the training views (noise always applies to all)."""
-SHARP_ALIASES = ("sharp", "none")
-"""Effect names meaning "no degradation" (a Deblur-NeRF layout with sharp training views)."""
 
 
 @dataclass
@@ -196,7 +191,7 @@ class DegradeConfig:
             effects.add("noise")
         if "noise" in effects and not self.noise.active:
             raise ValueError("the noise effect needs noise.sigma > 0 or noise.gain > 0 (CLI: --noise-sigma 0.01)")
-        return tuple(e for e in EFFECTS if e in effects)
+        return tuple(e for e in KNOWN_EFFECTS if e in effects)
 
 
 def normalize_effects(effects: Iterable[str]) -> tuple[str, ...]:
@@ -204,12 +199,12 @@ def normalize_effects(effects: Iterable[str]) -> tuple[str, ...]:
     names: list[str] = []
     for item in effects:
         names += [n.strip().lower() for n in str(item).split(",") if n.strip()]
-    unknown = sorted({n for n in names if n not in EFFECTS and n not in SHARP_ALIASES})
+    unknown = sorted({n for n in names if n not in KNOWN_EFFECTS and n not in SHARP_ALIASES})
     if unknown:
-        raise ValueError(f"unknown effect(s) {unknown}; valid effects: {list(EFFECTS)} (or 'sharp' for none)")
-    if any(n in SHARP_ALIASES for n in names) and any(n in EFFECTS for n in names):
+        raise ValueError(f"unknown effect(s) {unknown}; valid effects: {list(KNOWN_EFFECTS)} (or 'sharp' for none)")
+    if any(n in SHARP_ALIASES for n in names) and any(n in KNOWN_EFFECTS for n in names):
         raise ValueError(f"'sharp' cannot be combined with other effects, got {names}")
-    return tuple(e for e in EFFECTS if e in names)
+    return tuple(e for e in KNOWN_EFFECTS if e in names)
 
 
 def config_from_dict(

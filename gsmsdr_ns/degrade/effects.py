@@ -21,15 +21,15 @@ from ..synth.config import SynthSceneConfig
 from ..synth.raycast import render_view
 from ..synth.scene import Scene, build_scene
 from .config import DefocusConfig, MixresConfig, MotionConfig, NoiseConfig
+from ..data.mixres import mixres_factors
+from ..ops.mixres import apply_mixres
 from .kernels import (
     add_noise,
     apply_defocus,
-    apply_mixres,
     convolve_psf,
     defocus_radius,
     disk_blur,
     homography_blur,
-    mixres_factors,
     motion_kernel_from_trajectory,
     path_extent,
     plane_homography,

@@ -35,8 +35,6 @@ __all__ = [
     "disk_blur",
     "radius_levels",
     "apply_defocus",
-    "mixres_factors",
-    "apply_mixres",
     "add_noise",
     "PSFBlur",
     "RotationalShakeBlur",
@@ -327,37 +325,6 @@ def apply_defocus(
 
 
 # ------------------------------------------------------------------------------------------ mixed resolution
-
-
-def mixres_factors(n: int, seed: int | Sequence[int], factors: Sequence[int] = (4, 3, 2, 1)) -> np.ndarray:
-    """Split n views at random into len(factors) equal groups (sizes differ by at most one) -> factors [n] int.
-
-    Which groups get the remainder is random too; the same (n, seed, factors) always gives the same split.
-    """
-    if n < 0:
-        raise ValueError(f"n must be >= 0, got {n}")
-    if len(factors) == 0:
-        raise ValueError("factors must not be empty")
-    rng = np.random.default_rng(seed)
-    pattern = rng.permutation(np.asarray(factors, dtype=np.int64))
-    return rng.permutation(np.resize(pattern, n)) if n else np.zeros(0, dtype=np.int64)
-
-
-def apply_mixres(image: Tensor, factor: int, upsample: str = "bilinear") -> Tensor:
-    """Downscale by `factor` (antialiased bilinear, size round(H / f) x round(W / f)), upsample back to H x W.
-
-    factor 1 returns the image unchanged. [B, C, H, W] -> [B, C, H, W]
-    """
-    _check_image(image)
-    if int(factor) != factor or factor < 1:
-        raise ValueError(f"mixres factor must be an integer >= 1, got {factor}")
-    if factor == 1:
-        return image
-    H, W = image.shape[-2:]
-    small = (max(1, round(H / factor)), max(1, round(W / factor)))
-    low = resize(image, small, interpolation="bilinear", antialias=True)
-    up = resize(low, (H, W), interpolation=upsample, align_corners=False)
-    return up.clamp(0.0, 1.0)
 
 
 # ------------------------------------------------------------------------------------------------------- noise

@@ -36,7 +36,8 @@ from ..io.images import read_image, read_image_float, write_image
 from ..synth.config import SynthSceneConfig
 from ..synth.generate import check_target, to_uint8
 from ..synth.points import SparsePoints
-from .config import BLUR_EFFECTS, DegradeConfig
+from ..data.effects import BLUR_EFFECTS
+from .config import DegradeConfig
 from .effects import (
     ViewContext,
     defocus_effect,
@@ -46,7 +47,7 @@ from .effects import (
     sample_assignment,
     view_rng,
 )
-from .kernels import mixres_factors
+from ..data.mixres import mixres_factors
 from .source import SourceScene, load_depth, load_source
 from .undistort import describe_distortion, undistort_scene
 

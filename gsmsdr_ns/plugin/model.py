@@ -50,6 +50,7 @@ from gsmsdr_ns.blur.degradation_model import (
 )
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.hpko import HPKOScheduler
+from gsmsdr_ns.data.effects import DegradationMode
 from gsmsdr_ns.blur.profile import (
     DegradationProfile,
     ResolutionLossModel,
@@ -79,7 +80,7 @@ class GSMSDRModelConfig(SplatfactoModelConfig):
     """GS-MSDR model: splatfacto's Gaussian parameters and densification, rendered on CPU or GPU."""
 
     _target: Type = field(default_factory=lambda: GSMSDRModel)
-    degradation: Literal["auto", "motion", "defocus", "mixres", "sharp"] = "auto"
+    degradation: DegradationMode = "auto"
     """What degraded the training images. auto: per image, from the dataparser's records (degradation.json);
     images nothing is known about get the blur field (any blur, any resolution loss). motion / defocus / mixres /
     sharp: that for every training image the records do not call undegraded (sharp: plain splatfacto)."""

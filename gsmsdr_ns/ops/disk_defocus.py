@@ -7,7 +7,7 @@ softness))`` (equal up to float rounding), fused: the kernels' weights are compu
 and recomputed in the backward, so no [B, K*K, H, W] tensor exists (the unfused occluding kernels keep about six of
 them for the backward). Gradients reach ``image`` and ``radius``; ``inverse_depth`` is only compared.
 
-On CPU (float32 / float64) a C++/OpenMP kernel with one parallel region per call (`gsmsdr_ns.blur.disk_kernels_cpp`);
+On CPU (float32 / float64) a C++/OpenMP kernel with one parallel region per call (`gsmsdr_ns.ops.disk_defocus_cpp`);
 elsewhere (CUDA, half precision, no compiler) a PyTorch twin that loops over the K*K offsets with [B, 1, H, W]
 temporaries and recomputes them in its backward.
 """
@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from .kernels import _replicate_pad_adjoint
+from gsmsdr_ns.ops.pixel_kernels import _replicate_pad_adjoint
 
 __all__ = ["apply_occluding_defocus", "apply_soft_disk_defocus", "DefocusBackend"]
 
@@ -187,7 +187,7 @@ class _DiskDefocusCpp(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, image: Tensor, radius: Tensor, inverse_depth: Tensor, K: int, softness: float, occlusion: bool):
-        from gsmsdr_ns.blur.disk_kernels_cpp import disk_defocus_fwd_cpp
+        from gsmsdr_ns.ops.disk_defocus_cpp import disk_defocus_fwd_cpp
 
         image_c, radius_c, depth_c = image.contiguous(), radius.contiguous(), inverse_depth.contiguous()
         out, weight_sum = disk_defocus_fwd_cpp(image_c, radius_c, depth_c, K, softness, occlusion)
@@ -199,7 +199,7 @@ class _DiskDefocusCpp(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_out: Tensor, _grad_sum: Optional[Tensor]):
-        from gsmsdr_ns.blur.disk_kernels_cpp import disk_defocus_bwd_cpp
+        from gsmsdr_ns.ops.disk_defocus_cpp import disk_defocus_bwd_cpp
 
         image, radius, inverse_depth, out, weight_sum = ctx.saved_tensors
         need_image, need_radius = ctx.needs_input_grad[:2]
@@ -211,7 +211,7 @@ class _DiskDefocusCpp(torch.autograd.Function):
 
 
 def _apply(image, radius, inverse_depth, kernel_size, softness, occlusion, backend) -> Tensor:
-    from gsmsdr_ns.blur.disk_kernels_cpp import EXTENSION
+    from gsmsdr_ns.ops.disk_defocus_cpp import EXTENSION
 
     chosen = EXTENSION.backend_for(
         image, backend, unavailable="C++ thin-lens defocus op", fallback="the PyTorch loop (slower)"

@@ -3,7 +3,7 @@
 Built by the loader it shares with the rasterizer and the pixel-kernel op (`gsmsdr_ns._cpp_ext`) into
 ~/.cache/gsmsdr_ns/torch_extensions/<torch version>/gsmsdr_disk_kernels_cpu (or $TORCH_EXTENSIONS_DIR), at most once
 per process. `disk_kernels_cpp_available()` and `disk_kernels_cpp_error()` never raise, so the caller can fall back
-to the PyTorch twin (`gsmsdr_ns.blur.defocus_op`) with a clear reason.
+to the PyTorch twin (`gsmsdr_ns.ops.disk_defocus`) with a clear reason.
 """
 
 from __future__ import annotations

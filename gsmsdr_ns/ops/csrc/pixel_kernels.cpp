@@ -1,5 +1,5 @@
 // Per-pixel K x K kernels applied to an image with replicate borders, forward
-// and hand-written backward, on CPU (see gsmsdr_ns/blur/kernels.py for the
+// and hand-written backward, on CPU (see gsmsdr_ns/ops/pixel_kernels.py for the
 // Python entry point and the PyTorch twin).
 //
 // Convention (row-major kernel index k = i * K + j, p = K / 2):

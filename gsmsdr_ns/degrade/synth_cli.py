@@ -1,4 +1,7 @@
-"""`gsmsdr-synth`: generate the procedural default scene.
+"""`gsmsdr-synth`: generate the procedural default scene, sharp or degraded.
+
+The command lives here, above both packages it drives: ``gsmsdr_ns.synth`` renders the sharp scene and
+``gsmsdr_ns.degrade`` degrades it into a variant (``--variant``).
 
     gsmsdr-synth --out data/demo --seed 0 --num-views 32
     gsmsdr-synth --out data/demo --preset configs/synth/default.yaml --overwrite
@@ -20,8 +23,10 @@ import tyro
 from rich.console import Console
 
 from .._cli import preset_from_argv, run_entrypoint
-from .config import SynthSceneConfig, load_preset
-from .generate import generate_scene
+from ..synth.config import SynthSceneConfig, load_preset
+from ..synth.generate import generate_scene
+from .config import load_preset as load_degrade_preset
+from .variants import generate_variant
 
 CONSOLE = Console()
 
@@ -57,10 +62,8 @@ class SynthCLI:
         if self.variant == "none":
             out = generate_scene(self.out, self.scene, overwrite=self.overwrite, log=log)
         else:
-            from gsmsdr_ns.degrade import generate_variant, load_preset  # lazy: torch / kornia only when needed
-
             preset = self.degrade_preset
-            degrade = load_preset(preset) if preset is not None else None
+            degrade = load_degrade_preset(preset) if preset is not None else None
             out = generate_variant(
                 self.out, self.scene, self.variant, degrade, hold=self.hold, overwrite=self.overwrite, log=log,
                 preset_name=preset.stem if preset is not None else None,

@@ -1,7 +1,7 @@
 // Per-pixel K x K kernels predicted on a coarse grid, bilinearly resampled to
 // every pixel on the fly and applied with replicate borders: forward and
 // hand-written backward on CPU (Python entry point and PyTorch twin:
-// gsmsdr_ns/blur/grid_kernels.py).
+// gsmsdr_ns/ops/grid_kernels.py).
 //
 // With r the grid factor, the kernel of pixel (y, x) is
 //   w[k](y, x) = bilinear(grid[k], (y + 0.5) / r - 0.5, (x + 0.5) / r - 0.5)

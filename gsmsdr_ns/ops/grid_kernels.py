@@ -27,7 +27,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from gsmsdr_ns._cpp_ext import CppExtension
-from gsmsdr_ns.blur.kernels import apply_pixel_kernels, pixel_kernel_size
+from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels, pixel_kernel_size
 
 __all__ = [
     "GridKernels",

@@ -16,7 +16,7 @@ Cost. The unfold version materialises all K*K shifted copies of the image (17 x 
 patches, plus as much again for the product and twice more in the backward). `apply_pixel_kernels` never allocates
 anything of size K*K x image beyond the gradient of ``weights`` itself: the forward accumulates one shifted row at a
 time and the backward recomputes the shifts. On CPU (float32 / float64) it runs a C++/OpenMP kernel with one
-parallel region per call (`gsmsdr_ns.blur.kernels_cpp`); elsewhere (CUDA, half precision, no compiler) a PyTorch
+parallel region per call (`gsmsdr_ns.ops.pixel_kernels_cpp`); elsewhere (CUDA, half precision, no compiler) a PyTorch
 twin that loops over the K*K offsets, one shifted view of the padded image at a time. `gsmsdr-bench kernels` measures
 both against the unfold version.
 """
@@ -160,7 +160,7 @@ class _PixelKernelsCpp(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, image: Tensor, weights: Tensor, K: int) -> Tensor:
-        from gsmsdr_ns.blur.kernels_cpp import pixel_kernels_fwd_cpp
+        from gsmsdr_ns.ops.pixel_kernels_cpp import pixel_kernels_fwd_cpp
 
         image_c, weights_c = image.contiguous(), weights.contiguous()
         ctx.K = K
@@ -170,7 +170,7 @@ class _PixelKernelsCpp(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_out: Tensor) -> Tuple[Optional[Tensor], Optional[Tensor], None]:
-        from gsmsdr_ns.blur.kernels_cpp import pixel_kernels_bwd_cpp
+        from gsmsdr_ns.ops.pixel_kernels_cpp import pixel_kernels_bwd_cpp
 
         image, weights = ctx.saved_tensors
         need_image, need_weights = ctx.needs_input_grad[:2]
@@ -210,7 +210,7 @@ def apply_pixel_kernels(
             mismatch; the message names expected and actual shapes.
     """
     K = _check_inputs(image, weights)
-    from gsmsdr_ns.blur.kernels_cpp import EXTENSION
+    from gsmsdr_ns.ops.pixel_kernels_cpp import EXTENSION
 
     chosen = EXTENSION.backend_for(
         image, backend, unavailable="C++ pixel-kernel op", fallback="the PyTorch loop (slower on busy CPUs)"

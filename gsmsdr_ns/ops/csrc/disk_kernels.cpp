@@ -1,6 +1,6 @@
 // Thin-lens defocus (per-pixel disk kernels) applied to an image without ever
 // materialising the kernels, forward and hand-written backward, on CPU (see
-// gsmsdr_ns/blur/defocus_op.py for the Python entry point and the PyTorch twin).
+// gsmsdr_ns/ops/disk_defocus.py for the Python entry point and the PyTorch twin).
 //
 // It computes exactly apply_pixel_kernels(image, kernels) with kernels from
 // occluding_disk_kernels(radius, inverse_depth, K, softness) (occlusion) or
