@@ -15,6 +15,7 @@ from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo, kernel_prior_logits, kernel_upsample_matrix
+from gsmsdr_ns.blur.losses import DegradationAux, DegradationLossWeights, degradation_losses, mask_regulariser
 from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels, apply_pixel_kernels
 from gsmsdr_ns.blur.maan import GAKA, MCA, SAFM, BAGSFeatures, RGBDFeatures, normalize_depth, positional_encoding_2d
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, effective_factor
@@ -175,7 +176,7 @@ def test_gradients_reach_every_active_parameter_and_the_render(mode):
         weights, mask = f(render, depth, view_ids, scale)
         out = f.degrade(render, weights, mask)
         target = torch.rand_like(out)
-        loss = (out - target).abs().mean() + f.mask_loss(mask)
+        loss = (out - target).abs().mean() + mask_regulariser(mask, f.config.mask_reg_weight)
         loss.backward()
         active = {id(p) for p in f.parameters_for_scale(scale)}
         for name, p in f.named_parameters():
@@ -259,10 +260,13 @@ def test_shared_dict_hooks():
     assert len(owned) == len({id(p) for p in owned}) == len(list(f.parameters()))  # each parameter in one group
     paper = field(mask_reg_weight=0.001, view_kernels=False, thin_lens=False).get_param_groups({})
     assert set(paper) == {"blur_field"}
-    mask = torch.full((1, 1, 4, 4), 0.5)
-    losses = f.get_loss_dict({}, mask)
+    mask = torch.full((4, 4, 1), 0.5)
+    image = torch.zeros(4, 4, 3)
+    weights = DegradationLossWeights(mask=0.001)
+    losses = degradation_losses(DegradationAux(image, mask, learnt_mask=True), image, None, weights)
     torch.testing.assert_close(losses["blur_mask_reg"], torch.tensor(0.0005))
-    assert f.get_loss_dict({}, None) == {}
+    assert degradation_losses(DegradationAux(image), image, None, weights) == {}  # the field did not run
+    assert degradation_losses(DegradationAux(image, mask, learnt_mask=False), image, None, weights) == {}  # mode view
 
 
 def test_kernel_centroids_measure_the_shift_a_kernel_applies():
@@ -285,12 +289,13 @@ def test_kernel_centroids_measure_the_shift_a_kernel_applies():
 
 
 def test_kernel_centre_regulariser():
-    f = field(kernel_centre_weight=0.5)
     centroids = torch.zeros(1, 2, 3, 3)
     centroids[0, 0] = 2.0  # every kernel two rows off its pixel
-    losses = f.get_loss_dict({}, None, centroids)
+    image = torch.zeros(3, 3, 3)
+    aux = DegradationAux(image, kernel_centroids=centroids)
+    losses = degradation_losses(aux, image, None, DegradationLossWeights(kernel_centre=0.5))
     torch.testing.assert_close(losses["blur_kernel_centre"], torch.tensor(2.0))  # 0.5 * 2^2
-    assert field(kernel_centre_weight=0.0).get_loss_dict({}, None, centroids) == {}  # 0: off
+    assert degradation_losses(aux, image, None, DegradationLossWeights(kernel_centre=0.0)) == {}  # 0: off
     with pytest.raises(ValueError, match="kernel_centre_weight"):
         BlurFieldConfig(kernel_centre_weight=-1.0)
 
@@ -416,20 +421,17 @@ def test_scheduler_follows_the_resolution_schedule():
         sched.scale_for_downscale(3)
 
 
-def test_scheduler_switch_steps_warmup_and_state():
+def test_scheduler_switch_steps_and_warmup():
     sched = HPKOScheduler(switch_steps=(1000, 2500), warmup=250)
     assert [sched.scale_for_step(s).scale for s in (0, 999, 1000, 2499, 2500)] == [3, 3, 2, 2, 1]
     with pytest.raises(ValueError):
         HPKOScheduler(switch_steps=(3000,))
-    state = sched.initialize_state()
-    assert sched.update(state, 0) is None and state["scale"] is None  # warm-up: blur field off
-    assert sched.update(state, 249) is None
-    assert sched.update(state, 250) == ScaleInfo(3, 5, 4) and not state["switched"]
-    assert sched.update(state, 1000).scale == 2 and state["switched"]
-    assert sched.update(state, 1001).scale == 2 and not state["switched"]
-    # the downscale the model renders at wins over the step-based guess
-    assert sched.update(state, 1002, downscale=1) == ScaleInfo(1, 17, 1) and state["switched"]
-    assert state["first_step"] == {3: 250, 2: 1000, 1: 1002}
+    assert sched.scale_at(0, 4) is None and sched.scale_at(249, 4) is None  # warm-up: blur field off
+    assert sched.scale_at(250, 4) == ScaleInfo(3, 5, 4)
+    assert sched.scale_at(1000, 4).scale == 2  # explicit switch steps win over the render's downscale
+    following = HPKOScheduler(warmup=250)  # without them, the downscale the model renders at decides
+    assert [following.scale_at(step, 1) for step in (0, 250, 10)] == [None, ScaleInfo(1, 17, 1), None]
+    assert following.scale_at(1002, 2) == ScaleInfo(2, 9, 2)
     off = HPKOScheduler(enabled=False)
     assert off.scales == (1,)
     assert {off.scale_for_step(s) for s in (0, 3000, 9000)} == {ScaleInfo(1, 17, 1)}
@@ -614,7 +616,6 @@ def test_view_mode_has_no_feature_network_and_blurs_by_one_kernel_per_view():
     radius = kernel_rms_radius(weights[:, :, :1, :1])
     assert float(radius[0]) < 1.0 < float(radius[1])
     assert torch.equal(mask, torch.ones(2, 1, 16, 24))
-    assert f.get_loss_dict({}, mask) == {} and field(mode="full").get_loss_dict({}, mask).keys() == {"blur_mask_reg"}
     fast = f.degrade(render, weights, mask)
     torch.testing.assert_close(fast, apply_pixel_kernels(render, weights.contiguous()))
     with pytest.raises(ValueError, match="view_ids"):

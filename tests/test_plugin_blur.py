@@ -128,13 +128,13 @@ def test_blur_field_is_never_evaluated_on_sharp_training_images(scenes, tmp_path
     model = run.model
     names = [record["name"] for record in run.trainer.pipeline.datamanager.train_dataset.metadata["degradations"]]
     sharp = {i for i, name in enumerate(names) if name in SHARP_TRAIN_VIEWS}
-    assert len(sharp) == 3 and {i for i, p in enumerate(model.profiles) if p.is_sharp} == sharp
-    assert isinstance(model.blur_field, BlurField) and model.blur_field.uses_depth
-    assert model.resolution_model is None
+    assert len(sharp) == 3 and {i for i, p in enumerate(model.degradation.profiles) if p.is_sharp} == sharp
+    assert isinstance(model.degradation.blur_field, BlurField) and model.degradation.blur_field.uses_depth
+    assert model.degradation.resolution_model is None
     assert torch.isfinite(model.degradation.train_camera_centres).all()  # filled from the datamanager at training start
 
     calls: List[tuple] = []
-    handle = count_calls(model.blur_field, calls)
+    handle = count_calls(model.degradation.blur_field, calls)
     try:
         run.train(18)  # 8 training views: steps 8-15 are one full epoch after the warm-up
     finally:
@@ -163,8 +163,8 @@ def test_blur_field_is_never_evaluated_on_sharp_training_images(scenes, tmp_path
 def test_sharp_scene_builds_no_degradation_model(scenes, tmp_path):
     run = InProcessTrainer(scenes["sharp"], tmp_path)
     model = run.model
-    assert all(p.is_sharp for p in model.profiles)
-    assert model.blur_field is None and model.resolution_model is None and model.hpko is None
+    assert all(p.is_sharp for p in model.degradation.profiles)
+    assert model.degradation.blur_field is None and model.degradation.resolution_model is None and model.degradation.hpko is None
     assert not any(k.startswith("degradation.") for k in model.state_dict())
     assert set(run.trainer.optimizers.parameters) & {"blur_field", "resolution_model"} == set()
     run.train(4)
@@ -177,13 +177,13 @@ def test_sharp_scene_builds_no_degradation_model(scenes, tmp_path):
 def test_mixres_scene_uses_the_resolution_model_not_the_blur_field(scenes, tmp_path):
     run = InProcessTrainer(scenes["mixres"], tmp_path)
     model = run.model
-    factors = [p.mixres_factor for p in model.profiles]
+    factors = [p.mixres_factor for p in model.degradation.profiles]
     assert sorted(set(factors)) == [1, 2, 3, 4]
-    assert model.blur_field is None and isinstance(model.resolution_model, ResolutionLossModel)
+    assert model.degradation.blur_field is None and isinstance(model.degradation.resolution_model, ResolutionLossModel)
     assert "resolution_model" in run.trainer.optimizers.optimizers
-    residual_before = model.resolution_model.residual.detach().clone()
+    residual_before = model.degradation.resolution_model.residual.detach().clone()
     calls: List[tuple] = []
-    handle = count_calls(model.resolution_model, calls)
+    handle = count_calls(model.degradation.resolution_model, calls)
     try:
         run.train(8)  # one epoch: every view once
     finally:
@@ -191,7 +191,7 @@ def test_mixres_scene_uses_the_resolution_model_not_the_blur_field(scenes, tmp_p
     ran_on = sorted(views[0] for views, _, _ in calls)
     assert ran_on == sorted(i for i, f in enumerate(factors) if f > 1)
     assert all(f == [float(factors[v[0]])] for v, _, f in calls)  # num_downscales 0: the full factor
-    assert not torch.equal(model.resolution_model.residual.detach(), residual_before)  # the residual is trained
+    assert not torch.equal(model.degradation.resolution_model.residual.detach(), residual_before)  # the residual is trained
 
 
 # -- model level: profiles -> modules, HPKO scale, viewer outputs --------------------------------------------------
@@ -231,10 +231,10 @@ def build(metadata, n: int = 4, **config):
 def test_modules_follow_the_profiles(degradation, degradations, field, depth, resolution, lens):
     metadata = None if degradations is None else {"degradations": degradations}
     model = build(metadata, degradation=degradation)
-    assert (model.blur_field is not None) == field
-    assert (model.blur_field is not None and model.blur_field.uses_depth) == depth
-    assert (model.resolution_model is not None) == resolution
-    assert (model.blur_field is not None and model.blur_field.thin_lens is not None) == lens
+    assert (model.degradation.blur_field is not None) == field
+    assert (model.degradation.blur_field is not None and model.degradation.blur_field.uses_depth) == depth
+    assert (model.degradation.resolution_model is not None) == resolution
+    assert (model.degradation.blur_field is not None and model.degradation.blur_field.thin_lens is not None) == lens
     groups = model.get_param_groups()
     assert ("blur_field" in groups) == field and ("resolution_model" in groups) == resolution
     assert ("blur_defocus" in groups) == lens
@@ -254,10 +254,9 @@ def test_a_blur_of_unknown_kind_gets_the_field_and_the_lens_only_when_asked():
         ([{**r, "effects": {"motion": {}, "defocus": {}}} for r in unknown_kind], False, True),  # both, recorded
     ):
         model = build({"degradations": degradations}, blur_field=BlurFieldConfig(thin_lens_for_unknown_kind=ask))
-        assert model.blur_field is not None and model.blur_field.uses_depth
-        assert (model.blur_field.thin_lens is not None) == lens, (degradations[0]["effects"], ask)
-        model.degradation.step(10**6)  # past the field's warm-up
-        plan = model.degradation.plan(0, 1)
+        assert model.degradation.blur_field is not None and model.degradation.blur_field.uses_depth
+        assert (model.degradation.blur_field.thin_lens is not None) == lens, (degradations[0]["effects"], ask)
+        plan = model.degradation.plan(0, 1, step=10**6)  # past the field's warm-up
         assert plan.thin_lens == lens and plan.blur_scale is not None
 
 
@@ -269,7 +268,7 @@ def test_thin_lens_blurs_defocused_images_only_and_learns(mode):
     model = build(metadata, blur_field=BlurFieldConfig(mode=mode, warmup=0, thin_lens_initial_aperture=20.0))
     model.train()
     model.optimizers = None
-    lens = model.blur_field.thin_lens
+    lens = model.degradation.blur_field.thin_lens
     lens_calls: List[tuple] = []
     handle = lens.register_forward_hook(lambda _m, inputs, _o: lens_calls.append(tuple(inputs[1].tolist())))
     for view in (0, 2):
@@ -305,8 +304,8 @@ def test_defocus_only_images_skip_the_field_unless_asked(defocus_field):
     field_calls: List[tuple] = []
     lens_calls: List[int] = []
     handles = [
-        count_calls(model.blur_field, field_calls),
-        model.blur_field.thin_lens.register_forward_hook(lambda _m, i, _o: lens_calls.append(int(i[1]))),
+        count_calls(model.degradation.blur_field, field_calls),
+        model.degradation.blur_field.thin_lens.register_forward_hook(lambda _m, i, _o: lens_calls.append(int(i[1]))),
     ]
     for view in range(4):
         camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)
@@ -328,39 +327,34 @@ def test_records_must_match_the_training_images():
 
 
 def test_hpko_scale_follows_the_current_render_downscale():
-    """num_downscales 2, resolution_schedule 4: 1/4 -> 1/2 -> full resolution; K = 5 -> 9 -> 17 in step. The HPKO
-    state advances in the model's BEFORE_TRAIN_ITERATION callback, not while rendering."""
+    """num_downscales 2, resolution_schedule 4: 1/4 -> 1/2 -> full resolution; K = 5 -> 9 -> 17 in step. The scale
+    is a function of the step being rendered (no training callback or running state carries it)."""
     motion = {"degradations": records("motion")}
     model = build(motion, num_downscales=2, resolution_schedule=4, blur_field=BlurFieldConfig(warmup=0))
     model.train()
     model.optimizers = None
     callbacks = model.get_training_callbacks(TrainingCallbackAttributes(None, None, None, None))
-    hpko_steps = [c for c in callbacks if c.func == model.degradation.step]
-    assert len(hpko_steps) == 1
-    assert hpko_steps[0].where_to_run == [TrainingCallbackLocation.BEFORE_TRAIN_ITERATION]
+    assert not any(getattr(c.func, "__self__", None) is model.degradation for c in callbacks)
     calls: List[tuple] = []
-    handle = count_calls(model.blur_field, calls)
+    handle = count_calls(model.degradation.blur_field, calls)
     camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)
     camera.metadata = {"cam_idx": 1}
-    model.get_outputs(camera)
-    assert model.hpko_state["last_step"] is None  # rendering does not advance it
-    calls.clear()
-    for step in range(10):
+    sizes = []
+    for step in [*range(10), 3, 0]:  # going back gives the earlier scale again
         model.step = step
-        hpko_steps[0].run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
         outputs = model.get_outputs(camera)
         assert outputs["rgb"].shape == outputs["rgb_sharp"].shape == outputs["blur_mask"].shape[:2] + (3,)
+        sizes.append(model.get_metrics_dict(outputs, {"image": torch.zeros(48, 64, 3)})["blur_kernel_size"])
     handle.remove()
-    assert [(h, s) for _, h, s in calls] == [(12, 3)] * 4 + [(24, 2)] * 4 + [(48, 1)] * 2
-    assert model.hpko_state["first_step"] == {3: 0, 2: 4, 1: 8}
-    assert model.hpko_state["kernel_size"] == 17
+    assert [(h, s) for _, h, s in calls] == [(12, 3)] * 4 + [(24, 2)] * 4 + [(48, 1)] * 2 + [(12, 3)] * 2
+    assert sizes == [5] * 4 + [9] * 4 + [17] * 2 + [5] * 2
 
 
 def _shift_left_two_pixels(model) -> None:
     """Every view's kernel (mode view, one 5 x 5 scale) becomes a delta two columns right of centre: the blurred
     image at column x is the render's column x + 2."""
     with torch.no_grad():
-        logits = model.blur_field.heads.view_logits["1"]
+        logits = model.degradation.blur_field.heads.view_logits["1"]
         logits.fill_(-40.0)
         logits[:, 2 * 5 + 4] = 40.0
 
@@ -379,7 +373,7 @@ def test_blurred_views_render_a_margin_the_blur_reads_then_crop_it(margin):
     camera.metadata = {"cam_idx": 0}
     model.train()
     model.optimizers = None  # the densification strategy's pre-backward step reads it
-    model.degradation.step(10)
+    model.step = 10
     outputs = model.get_outputs(camera)
     assert outputs["rgb"].shape == outputs["rgb_sharp"].shape == (48, 64, 3)
     assert outputs["accumulation"].shape == (48, 64, 1) and outputs["blur_mask"].shape == (48, 64, 1)
@@ -407,8 +401,7 @@ def test_camera_shake_runs_on_views_that_may_be_shaken_and_learns():
     model = build({"degradations": recs}, num_downscales=0, blur_field=BlurFieldConfig(camera_shake=True, warmup=0))
     shake = model.degradation.camera_shake
     assert shake is not None and model.get_param_groups()["blur_shake"] == [shake.coefficients]
-    model.degradation.step(10)
-    assert [model.degradation.plan(i, 1).shake for i in range(4)] == [True, False, False, True]
+    assert [model.degradation.plan(i, 1, step=10).shake for i in range(4)] == [True, False, False, True]
     model.train()
     model.optimizers = None
     camera = make_camera(look_from([2.0, 0.5, 1.0]), width=32, height=24)
@@ -423,8 +416,8 @@ def test_camera_shake_runs_on_views_that_may_be_shaken_and_learns():
     assert no_motion.degradation.camera_shake is None and "blur_shake" not in no_motion.get_param_groups()
 
 
-def test_warm_up_follows_the_step_the_callback_gave():
-    """The blur field is skipped until the step given to ``DegradationModel.step`` reaches the warm-up."""
+def test_warm_up_follows_the_step_being_rendered():
+    """The blur field is skipped until the model's step reaches the warm-up."""
     model = build({"degradations": records("motion")}, blur_field=BlurFieldConfig(warmup=3))
     model.train()
     model.optimizers = None
@@ -433,7 +426,6 @@ def test_warm_up_follows_the_step_the_callback_gave():
     ran = []
     for step in range(5):
         model.step = step
-        model.degradation.step(step)
         ran.append("blur_mask" in model.get_outputs(camera))
     assert ran == [False, False, False, True, True]
 
@@ -444,8 +436,8 @@ def test_a_checkpoint_from_before_the_degradation_model_loads():
     model = build(metadata, n=3)
     model.set_train_camera_centres(torch.stack([look_from([float(i), 0.5, 1.0]) for i in range(3)]))
     with torch.no_grad():
-        model.resolution_model.residual.normal_()
-        next(model.blur_field.parameters()).add_(1.0)
+        model.degradation.resolution_model.residual.normal_()
+        next(model.degradation.blur_field.parameters()).add_(1.0)
     state = model.state_dict()
     old = {k.removeprefix("degradation."): v.clone() for k, v in state.items()}
     assert any(k.startswith("blur_field.heads.") for k in old)
@@ -619,7 +611,6 @@ def test_densification_gradient_of_blurred_views_is_scaled_when_asked():
         camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)
         camera.metadata = {"cam_idx": view}
         model.step = 1
-        model.degradation.step(1)
         outputs = model.get_outputs(camera)
         outputs["rgb"].square().mean().backward()
         model.step_post_backward(1)
@@ -649,13 +640,12 @@ def test_the_deconvolved_loss_weighs_a_blurred_views_residual_by_its_mean_kernel
         model.train()
         model.optimizers = None  # no densification step here
         model.step = 1
-        model.degradation.step(1)
         camera.metadata = {"cam_idx": view}
         outputs = model.get_outputs(camera)
         return model.get_loss_dict(outputs, {"image": image}), outputs
 
     losses, outputs = loss_terms(0, 10.0)
-    kernel = outputs["blur_kernel_mean"]
+    kernel = outputs["degradation"].kernel_mean
     assert kernel.shape[0] == 1 and kernel.shape[1] == kernel.shape[2] and not kernel.requires_grad
     torch.testing.assert_close(kernel.sum(), torch.tensor(1.0))
     residual = (outputs["rgb"] - image).permute(2, 0, 1)[None]
@@ -664,4 +654,4 @@ def test_the_deconvolved_loss_weighs_a_blurred_views_residual_by_its_mean_kernel
     assert losses["blur_deconvolved"].requires_grad  # it trains the Gaussians and the field
     assert "blur_deconvolved" not in loss_terms(1, 10.0)[0]  # the sharp view
     off, outputs = loss_terms(0, 0.0)
-    assert "blur_deconvolved" not in off and "blur_kernel_mean" not in outputs
+    assert "blur_deconvolved" not in off and outputs["degradation"].kernel_mean is None

@@ -62,7 +62,7 @@ def test_trainer_stops_on_a_nan_naming_the_step(trainer_factory, poison):
 
     trainer = trainer_factory(max_steps=12)
     model = trainer.pipeline.model
-    assert model.blur_field is not None, "the tiny scene should train the blur field (nothing known about it)"
+    assert model.degradation.blur_field is not None, "the tiny scene should train the blur field (nothing known about it)"
     bad_step = 5
 
     def inject(step: int) -> None:
@@ -98,8 +98,8 @@ def test_trainer_survives_a_learning_rate_spike(trainer_factory):
     optimizers = trainer.optimizers.optimizers
     base = {name: [group["lr"] for group in opt.param_groups] for name, opt in optimizers.items()}
     spike_step, checked = 3, []
-    assert model.blur_field is not None
-    blur_before = [param.detach().clone() for param in model.blur_field.parameters()]
+    assert model.degradation.blur_field is not None
+    blur_before = [param.detach().clone() for param in model.degradation.blur_field.parameters()]
 
     def set_lrs(step: int) -> None:
         for name, opt in optimizers.items():
@@ -121,6 +121,6 @@ def test_trainer_survives_a_learning_rate_spike(trainer_factory):
     trainer.train()
     assert checked == list(range(10))
     assert float(model.scales.max()) > 20.0, "the spike did not reach the scales: the test lost its point"
-    moved = [not torch.equal(a, b) for a, b in zip(blur_before, model.blur_field.parameters())]
+    moved = [not torch.equal(a, b) for a, b in zip(blur_before, model.degradation.blur_field.parameters())]
     assert any(moved), "the blur field was not trained: the spike did not go through the degradation path"
 

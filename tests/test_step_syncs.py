@@ -186,7 +186,7 @@ def test_blurred_steps_do_not_wait_for_the_device(build_trainer):
     seen = set(model._train_image_sizes)
     assert seen == set(range(model.num_train_data)), f"warm-up saw training views {seen} only"
     for view in seen:  # every view gets the lens, then the field
-        plan = model.degradation.plan(view, 1)
+        plan = model.degradation.plan(view, 1, model.step)
         assert plan.thin_lens and plan.blur_field and plan.blur_scale is not None, plan
 
     ops_per_step, syncs = [], []

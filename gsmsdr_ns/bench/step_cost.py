@@ -105,7 +105,7 @@ def measure_step_cost(spec: StepCostSpec, work_dir: Path) -> Dict[str, object]:
             breakdown = {k: 1000.0 * v / spec.breakdown_steps for k, v in recorder.totals().items()}
         model = run.model
         cameras = run.pipeline.datamanager.train_dataparser_outputs.cameras
-        blurred = sum(1 for profile in model.profiles if profile.needs_blur_field)
+        blurred = sum(1 for profile in model.degradation.profiles if profile.needs_blur_field)
         gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else ""
         return {
             "method": spec.method,
@@ -120,7 +120,7 @@ def measure_step_cost(spec: StepCostSpec, work_dir: Path) -> Dict[str, object]:
             "peak_mb": peak,
             "run_peak_mb": run_peak if device.type == "cuda" else float("nan"),
             "num_gaussians": int(model.num_points),
-            "blurred_views": f"{blurred}/{len(model.profiles)}",
+            "blurred_views": f"{blurred}/{len(model.degradation.profiles)}",
             "breakdown_steps": spec.breakdown_steps,
             "breakdown_ms": " ".join(f"{k}={v:.2f}" for k, v in breakdown.items()),
         }

@@ -17,7 +17,6 @@ import math
 from typing import Optional
 
 import torch
-import torch.nn.functional as F
 from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 from torch import Tensor, nn
 

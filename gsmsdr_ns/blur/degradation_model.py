@@ -1,12 +1,14 @@
 """Everything that turns a sharp render into the degraded photo a training image is: :class:`DegradationModel`.
 
 It owns one :class:`~gsmsdr_ns.blur.profile.DegradationProfile` per training image and only the parts those
-profiles need: the blur field (MAAN + HPKO, with its thin lens for defocus) and its HPKO scheduler with the
-scheduler's running state, the optional camera-shake paths (``BlurFieldConfig.camera_shake``), and the
-resolution-loss model. A sharp scene builds none of them. The nerfstudio model asks it, per training step, for a
-:class:`DegradationPlan` (:meth:`DegradationModel.plan`) and passes the render through it
-(:meth:`DegradationModel.forward`); the viewer's blur outputs come from :meth:`DegradationModel.preview`. Both run
-"the thin lens, then the field" through one method, :meth:`DegradationModel._lens_then_field`.
+profiles need: the blur field (MAAN + HPKO, with its thin lens for defocus) and its HPKO scheduler, the optional
+camera-shake paths (``BlurFieldConfig.camera_shake``), and the resolution-loss model. A sharp scene builds none of
+them. One training step enters it three times, each a function of its arguments (no state carried between them):
+:meth:`DegradationModel.plan` says what the image needs at this step and resolution, :meth:`DegradationModel.forward`
+passes the render through it and returns the degraded image with one :class:`~gsmsdr_ns.blur.losses.DegradationAux`,
+and :meth:`DegradationModel.losses` turns that into every degradation loss term. The viewer's blur outputs come from
+:meth:`DegradationModel.preview`; it and ``forward`` run "the thin lens, then the field" through one method,
+:meth:`DegradationModel._lens_then_field`.
 
 Checkpoint keys: ``blur_field.*``, ``camera_shake.*``, ``resolution_model.*`` and ``train_camera_centres`` under
 this module's prefix; :func:`remap_legacy_keys` moves the keys of checkpoints written before this module existed
@@ -22,15 +24,16 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from gsmsdr_ns.ops.deconvolved_loss import blend_with_identity, deconvolved_residual, mean_kernel
-from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
-from gsmsdr_ns.ops.grid_kernels import GridKernels, as_dense
-from gsmsdr_ns.ops.pixel_kernels import kernel_centroids
+from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig, blend
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo
+from gsmsdr_ns.blur.losses import DegradationAux, DegradationLossWeights, degradation_losses
 from gsmsdr_ns.blur.maan import host_checked_view_ids
 from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, describe_profiles, effective_factor
 from gsmsdr_ns.blur.shake import CameraShake
+from gsmsdr_ns.ops.deconvolved_loss import blend_with_identity, mean_kernel
+from gsmsdr_ns.ops.grid_kernels import GridKernels, as_dense
+from gsmsdr_ns.ops.pixel_kernels import kernel_centroids
 from gsmsdr_ns.timing_hooks import timed
 
 __all__ = ["DegradationModel", "DegradationPlan", "crop_margin", "LEGACY_KEY_PREFIXES", "remap_legacy_keys"]
@@ -62,6 +65,13 @@ class DegradationPlan(NamedTuple):
     margin: int = 0
     """Pixels the render reaches beyond each border of the image (:meth:`DegradationModel.forward` blurs the
     enlarged render, then crops them)."""
+    deconvolved_loss: bool = False
+    """The field's mean kernel is taken for the deconvolved loss (its weight > 0 and the field runs)."""
+    kernel_centre_loss: bool = False
+    """The field's kernel centres are taken for their regulariser (its weight > 0, the field runs, and the image's
+    pose was estimated from the photo)."""
+    has_model: bool = False
+    """The training image has a degradation model (its profile is not sharp), whether or not it runs at this step."""
 
     @property
     def needs_depth(self) -> bool:
@@ -159,8 +169,7 @@ class DegradationModel(nn.Module):
         preview_max_side: the viewer outputs' working resolution (see :meth:`preview`; 0: full resolution).
 
     Attributes (None when no image needs them): ``blur_field`` (:class:`BlurField`), ``hpko``
-    (:class:`HPKOScheduler`), ``hpko_state`` (its running state, a plain dict advanced by :meth:`step`),
-    ``train_camera_centres`` (persistent [N, 3] buffer, NaN until :meth:`set_train_camera_centres`: the viewer
+    (:class:`HPKOScheduler`), ``train_camera_centres`` (persistent [N, 3] buffer, NaN until :meth:`set_train_camera_centres`: the viewer
     outputs use the nearest training view), ``resolution_model`` (:class:`ResolutionLossModel`). The blur field is
     initialised under ``torch.random.fork_rng``: building it leaves the random stream training draws from as it
     would be without it.
@@ -178,10 +187,8 @@ class DegradationModel(nn.Module):
         super().__init__()
         self.profiles: List[DegradationProfile] = list(profiles)
         self.preview_max_side = int(preview_max_side)
-        self.current_step = 0
         self.blur_field: Optional[BlurField] = None
         self.hpko: Optional[HPKOScheduler] = None
-        self.hpko_state: Optional[Dict[str, Any]] = None
         self.resolution_model: Optional[ResolutionLossModel] = None
         self._view_id_tensors: Dict[Tuple[int, torch.device], Tensor] = {}
         num_views = len(self.profiles)
@@ -196,7 +203,6 @@ class DegradationModel(nn.Module):
             self.hpko = field_config.make_scheduler(
                 num_downscales=num_downscales, resolution_schedule=resolution_schedule
             )
-            self.hpko_state = self.hpko.initialize_state()
             self.register_buffer("train_camera_centres", torch.full((num_views, 3), float("nan")))
         self.camera_shake: Optional[CameraShake] = None
         if self.blur_field is not None and field_config.camera_shake and any(p.motion for p in self.profiles):
@@ -226,13 +232,6 @@ class DegradationModel(nn.Module):
         """``"<profile counts> -> <models>"``, e.g. ``"6 motion, 2 sharp -> blur field (...)"``."""
         return f"{describe_profiles(self.profiles)} -> {self.describe()}"
 
-    def step(self, step: int) -> None:
-        """A training step begins: the HPKO state (scale in use, step each scale was first used at) moves to it."""
-        self.current_step = int(step)
-        if self.hpko is not None:
-            assert self.hpko_state is not None
-            self.hpko.update(self.hpko_state, self.current_step)
-
     @torch.no_grad()
     def set_train_camera_centres(self, camera_to_worlds: Tensor) -> None:
         """Store the centres of the training cameras ([N, 3, 4] poses, the training split's order)."""
@@ -258,29 +257,18 @@ class DegradationModel(nn.Module):
             groups["resolution_model"] = list(self.resolution_model.parameters())
         return groups
 
-    def get_loss_dict(
-        self, loss_dict: Dict[str, Tensor], outputs: Dict[str, Any], image: Optional[Tensor] = None
-    ) -> Dict[str, Tensor]:
-        """Add the blur field's terms when it ran: ``blur_mask_reg`` (``outputs["blur_mask"]``),
-        ``blur_kernel_centre`` (``outputs["blur_kernel_centroids"]``) and, given the training ``image`` [H, W, 3]
-        the degraded ``outputs["rgb"]`` is compared with, ``blur_deconvolved`` (``outputs["blur_kernel_mean"]``,
-        :mod:`gsmsdr_ns.ops.deconvolved_loss`)."""
+    def losses(self, aux: DegradationAux, degraded: Tensor, target: Optional[Tensor]) -> Dict[str, Tensor]:
+        """Every degradation loss term of a step (:func:`~gsmsdr_ns.blur.losses.degradation_losses`): ``aux`` and
+        ``degraded`` [H, W, 3] from :meth:`forward`, ``target`` [H, W, 3] the training image (needed only when
+        ``aux.kernel_mean`` is set)."""
         if self.blur_field is None:
-            return loss_dict
-        self.blur_field.get_loss_dict(loss_dict, outputs.get("blur_mask"), outputs.get("blur_kernel_centroids"))
-        kernel = outputs.get("blur_kernel_mean")
-        if kernel is not None and image is not None:
-            config = self.blur_field.config
-            residual = _bchw(outputs["rgb"] - image)
-            weighted = deconvolved_residual(residual, kernel, config.deconvolved_loss_eps)
-            loss_dict["blur_deconvolved"] = config.deconvolved_loss_weight * weighted.square().mean()
-        return loss_dict
-
-    def get_metrics_dict(self, metrics_dict: Dict[str, Any], outputs: Dict[str, Any]) -> Dict[str, Any]:
-        """Add ``blur_kernel_size`` (the HPKO kernel size in use) when the field ran."""
-        if "blur_mask" in outputs and self.hpko_state is not None:
-            metrics_dict["blur_kernel_size"] = self.hpko_state["kernel_size"]
-        return metrics_dict
+            return {}
+        config = self.blur_field.config
+        weights = DegradationLossWeights(
+            config.mask_reg_weight, config.kernel_centre_weight, config.deconvolved_loss_weight,
+            config.deconvolved_loss_eps,
+        )  # fmt: skip
+        return degradation_losses(aux, degraded, target, weights)
 
     # -- training -------------------------------------------------------------------------------------------
 
@@ -306,9 +294,9 @@ class DegradationModel(nn.Module):
             and not field.config.defocus_field
         )
 
-    def plan(self, view_id: Optional[int], render_downscale: int) -> DegradationPlan:
+    def plan(self, view_id: Optional[int], render_downscale: int, step: int) -> DegradationPlan:
         """What to simulate for training image ``view_id`` (None: a camera outside the training set) rendered at
-        1 / ``render_downscale``, at the step given to :meth:`step`.
+        1 / ``render_downscale`` on training step ``step``; a function of its arguments alone.
 
         Nothing for sharp images. The blur field runs once the HPKO scheduler is past its warm-up, at the scale of
         ``render_downscale`` (so it follows the resolution schedule; explicit ``switch_steps`` take over when set);
@@ -319,30 +307,37 @@ class DegradationModel(nn.Module):
         profile = self.profiles[view_id]
         if profile.is_sharp:
             return DegradationPlan(view_id)
+        field = self.blur_field
         blur_scale = None
-        if profile.needs_blur_field and self.hpko is not None and self.hpko.is_active(self.current_step):
-            if self.hpko.switch_steps is None:
-                blur_scale = self.hpko.scale_for_downscale(render_downscale)
-            else:
-                blur_scale = self.hpko.scale_for_step(self.current_step)
+        if profile.needs_blur_field and self.hpko is not None:
+            blur_scale = self.hpko.scale_at(step, render_downscale)
         factor = 1.0
         if profile.needs_resolution_model and self.resolution_model is not None:
             factor = effective_factor(profile.mixres_factor, render_downscale)
-        field = self.blur_field
-        thin_lens = field is not None and field.thin_lens is not None and _lens_for(profile, field.config)
-        uses_depth = field is not None and field.uses_depth
-        margin = blur_scale.kernel_size // 2 if blur_scale is not None and field.config.render_margin else 0
-        shake = blur_scale is not None and self.camera_shake is not None and profile.motion
+        if field is None or blur_scale is None:
+            return DegradationPlan(view_id, resolution_factor=factor, render_downscale=render_downscale, has_model=True)
+        config = field.config
+        runs_field = not self.lens_alone(view_id)
         return DegradationPlan(
-            view_id, blur_scale, uses_depth, factor, thin_lens, render_downscale, not self.lens_alone(view_id),
-            shake, margin,
+            view_id=view_id,
+            blur_scale=blur_scale,
+            blur_uses_depth=field.uses_depth,
+            resolution_factor=factor,
+            thin_lens=field.thin_lens is not None and _lens_for(profile, config),
+            render_downscale=render_downscale,
+            blur_field=runs_field,
+            shake=self.camera_shake is not None and profile.motion,
+            margin=blur_scale.kernel_size // 2 if config.render_margin else 0,
+            deconvolved_loss=runs_field and config.deconvolved_loss_weight > 0,
+            kernel_centre_loss=runs_field and config.kernel_centre_weight > 0 and not profile.exact_pose,
+            has_model=True,
         )
 
     def forward(
         self, rgb: Tensor, depth: Optional[Tensor], plan: DegradationPlan, K: Optional[Tensor] = None
-    ) -> Dict[str, Tensor]:
+    ) -> Tuple[Tensor, DegradationAux]:
         """Pass the sharp render through this image's degradation models, in the order a camera degrades a photo:
-        blur (thin lens, then blur field), then resolution loss (resolution model).
+        camera shake, thin lens, blur field, then resolution loss.
 
         Args:
             rgb: [H + 2 m, W + 2 m, 3] sharp render, m = ``plan.margin``.
@@ -350,13 +345,14 @@ class DegradationModel(nn.Module):
             plan: from :meth:`plan`.
             K: [3, 3] intrinsics of the render (margin included); needed when ``plan.shake``.
         Returns:
-            ``rgb`` [H, W, 3] (the simulated degraded image), ``rgb_sharp`` (the input without its margin) and, when
-            the blur field ran, ``blur_mask`` [H, W, 1].
+            The simulated degraded image [H, W, 3], and what the losses, metrics and viewer read of the step
+            (:class:`~gsmsdr_ns.blur.losses.DegradationAux`).
         """
         image = _bchw(rgb)
         assert plan.view_id is not None
         view_ids = self.view_ids(plan.view_id, image.device)
-        outputs: Dict[str, Tensor] = {"rgb_sharp": crop_margin(rgb, plan.margin, dims=(0, 1))}
+        sharp = crop_margin(rgb, plan.margin, dims=(0, 1))
+        aux = DegradationAux(sharp)
         if plan.shake:
             assert self.camera_shake is not None and self.blur_field is not None and K is not None
             centred = not self.profiles[plan.view_id].exact_pose
@@ -379,18 +375,22 @@ class DegradationModel(nn.Module):
             if stages.kernels is not None:
                 assert stages.mask is not None
                 blurred = timed("kernels", BlurField.blur, image, stages.kernels, self.blur_field.config.linear_light)
-                image = stages.mask * blurred + (1.0 - stages.mask) * image  # BlurField.degrade
-                outputs["blur_mask"] = _hwc(crop_margin(stages.mask, plan.margin))
-                if self.blur_field.config.deconvolved_loss_weight > 0:
-                    outputs["blur_kernel_mean"] = _mean_blend_kernel(stages.kernels, stages.mask)
-                if self.blur_field.config.kernel_centre_weight > 0 and not self.profiles[plan.view_id].exact_pose:
-                    outputs["blur_kernel_centroids"] = timed("blur_field", _kernel_centroids, stages.kernels)
+                image = blend(stages.mask, blurred, image)
+                aux = DegradationAux(
+                    sharp,
+                    mask=_hwc(crop_margin(stages.mask, plan.margin)),
+                    learnt_mask=self.blur_field.config.mode != "view",
+                    kernel_mean=_mean_blend_kernel(stages.kernels, stages.mask) if plan.deconvolved_loss else None,
+                    kernel_centroids=(
+                        timed("blur_field", _kernel_centroids, stages.kernels) if plan.kernel_centre_loss else None
+                    ),
+                    kernel_size=plan.blur_scale.kernel_size,
+                )
         image = crop_margin(image, plan.margin)
         if plan.resolution_factor > 1.0:
             assert self.resolution_model is not None
             image = timed("kernels", self.resolution_model, image, [plan.resolution_factor], view_ids)
-        outputs["rgb"] = _hwc(image)
-        return outputs
+        return _hwc(image), aux
 
     def _lens_then_field(
         self,
@@ -430,11 +430,11 @@ class DegradationModel(nn.Module):
 
     # -- viewer ---------------------------------------------------------------------------------------------
 
-    def preview(self, rgb: Tensor, depth: Optional[Tensor], camera_centre: Tensor) -> Dict[str, Tensor]:
+    def preview(self, rgb: Tensor, depth: Optional[Tensor], camera_centre: Tensor, step: int) -> Dict[str, Tensor]:
         """Viewer outputs of the blur field for an evaluation camera, as for the nearest training view (its
         embedding and per-view kernels).
 
-        The field runs at the HPKO scale training uses at the current step (``hpko.scale_for_step``), on the
+        The field runs at the HPKO scale training uses at ``step`` (``hpko.scale_for_step``), on the
         render shrunk to that scale's resolution, or further (powers of two) until its longer side is at most
         ``preview_max_side``; in that case the kernels are re-expressed on the coarser grid (:func:`coarsen_kernels`)
         so the simulated blur keeps its extent. Results are enlarged back to the render's size. ``degraded``
@@ -448,10 +448,11 @@ class DegradationModel(nn.Module):
             rgb: [H, W, 3] sharp render.
             depth: [H, W, 1] expected depth (read when the field or the lens needs it).
             camera_centre: [3] position of the evaluation camera.
+            step: the training step whose kernels to show.
         """
         assert self.blur_field is not None and self.hpko is not None
         height, width = rgb.shape[:2]
-        info = self.hpko.scale_for_step(self.current_step)
+        info = self.hpko.scale_for_step(step)
         d = preview_downscale(height, width, self.preview_max_side, at_least=info.downsample)
         small = (max(1, height // d), max(1, width // d))
         image = _bchw(rgb)
@@ -492,5 +493,5 @@ class DegradationModel(nn.Module):
         blurred = BlurField.blur(stages.image, coarse, self.blur_field.config.linear_light)
         mask_full = enlarge(stages.mask)
         base = image if not lens else enlarge(stages.image)  # what the field blends with: the render or its lens blur
-        degraded = (mask_full * enlarge(blurred) + (1.0 - mask_full) * base).clamp(0.0, 1.0)
+        degraded = blend(mask_full, enlarge(blurred), base).clamp(0.0, 1.0)
         return {"degraded": _hwc(degraded), "kernel_size": _hwc(enlarge(extent)), "blur_mask": _hwc(mask_full)}

@@ -30,7 +30,7 @@ from torch import Tensor, nn
 
 from .defocus import ThinLensDefocus
 from gsmsdr_ns.ops.grid_kernels import GridKernels, apply_grid_kernels, pool_to_grid, upsample_grid
-from .hpko import HPKOHeads, HPKOScheduler, ViewKernels, check_kernel_sizes
+from .hpko import HPKOHeads, HPKOScheduler, ViewKernels, check_kernel_sizes, hpko_scales
 from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels, apply_pixel_kernels
 from .maan import MCA, BAGSFeatures, ContextualFeatures, RGBDFeatures, check_bchw, check_view_ids
 
@@ -256,6 +256,12 @@ class BlurFieldConfig:
         return BlurField(self, **kwargs)
 
 
+def blend(mask: Tensor, blurred: Tensor, sharp: Tensor) -> Tensor:
+    """``mask * blurred + (1 - mask) * sharp``: the field's mask chooses, per pixel, how much of the blur a photo
+    shows. mask [B, 1, H, W], blurred and sharp [B, C, H, W] -> [B, C, H, W]."""
+    return mask * blurred + (1.0 - mask) * sharp
+
+
 class BlurField(nn.Module):
     """Per-pixel blur kernels and masks for training views (GS-MSDR).
 
@@ -280,7 +286,7 @@ class BlurField(nn.Module):
         mods, dims = config.modules, config.dims
         self._num_train_views = int(num_train_views)
         self.uses_depth = mods.rgbd and (use_depth is None or bool(use_depth))
-        self.scales: Tuple[int, ...] = tuple(range(len(config.kernel_sizes), 0, -1)) if mods.hpko else (1,)
+        self.scales: Tuple[int, ...] = hpko_scales(len(config.kernel_sizes), mods.hpko)
         self.mcf: Optional[ContextualFeatures] = None
         self.mca: Optional[MCA] = None
         self.heads: nn.Module
@@ -418,29 +424,9 @@ class BlurField(nn.Module):
         """
         if mask.dim() != 4 or mask.shape[1] != 1 or mask.shape[-2:] != render.shape[-2:]:
             raise ValueError(f"mask must be [B, 1, H, W] matching render {list(render.shape)}, got {list(mask.shape)}")
-        return mask * BlurField.blur(render, kernel_weights, linear_light) + (1.0 - mask) * render
+        return blend(mask, BlurField.blur(render, kernel_weights, linear_light), render)
 
-    # -------------------------------------------------------------------- nerfstudio-style shared-dict hooks
-
-    def mask_loss(self, mask: Tensor) -> Tensor:
-        """Mask regulariser ``mask_reg_weight * mean(m)`` (pushes unneeded blending toward the sharp render)."""
-        return self.config.mask_reg_weight * mask.mean()
-
-    def kernel_centre_loss(self, centroids: Tensor) -> Tensor:
-        """Kernel-centre regulariser ``kernel_centre_weight * mean(|c|^2)`` of the kernels' centres of mass
-        (``centroids`` [B, 2, H, W] in pixels, :func:`~gsmsdr_ns.ops.pixel_kernels.kernel_centroids`)."""
-        return self.config.kernel_centre_weight * centroids.square().sum(dim=1).mean()
-
-    def get_loss_dict(
-        self, loss_dict: Dict[str, Tensor], mask: Optional[Tensor], centroids: Optional[Tensor] = None
-    ) -> Dict[str, Tensor]:
-        """Add ``blur_mask_reg`` to ``loss_dict`` (nothing when the field did not run, mask None, or has no learnt
-        mask: mode view) and, given the kernels' ``centroids``, ``blur_kernel_centre``."""
-        if mask is not None and self.config.mask_reg_weight > 0 and self.config.mode != "view":
-            loss_dict["blur_mask_reg"] = self.mask_loss(mask)
-        if centroids is not None and self.config.kernel_centre_weight > 0:
-            loss_dict["blur_kernel_centre"] = self.kernel_centre_loss(centroids)
-        return loss_dict
+    # -------------------------------------------------------------------- optimizer groups
 
     def get_param_groups(self, param_groups: Dict[str, List[nn.Parameter]]) -> Dict[str, List[nn.Parameter]]:
         """Add the ``blur_field`` group (the feature network, MCA and per-pixel heads) and, with per-view kernels,

@@ -5,17 +5,17 @@ s = 2 (1/2, K_2 = 9), s = 1 (full resolution, K_1 = 17). Kernel sizes are given 
 ``kernel_sizes[num_scales - s]`` is K_s.
 
 * :class:`HPKOHeads` holds the per-scale heads M_base^s, M_blur^s, M_mask^s (1x1 convs, i.e. per-pixel MLPs).
-* :class:`HPKOScheduler` says which scale is active. It holds hyperparameters only; running state lives in the
-  plain dict from ``initialize_state()`` (gsplat ``DefaultStrategy`` style). The model should ask
-  ``scale_for_downscale(d)`` with the downscale factor it is actually rendering at, so that the kernel scale can
-  never drift from splatfacto's resolution schedule.
+* :class:`HPKOScheduler` says which scale is active at a step: pure queries of its hyperparameters, no running
+  state. The degradation model asks ``scale_at(step, d)`` with the downscale factor it is actually rendering at,
+  so that the kernel scale can never drift from splatfacto's resolution schedule.
+* :func:`hpko_scales` numbers the scales; the scheduler, the heads and the field all take them from it.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Dict, NamedTuple, Optional, Sequence, Tuple
+from typing import NamedTuple, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -25,6 +25,7 @@ from gsmsdr_ns.io.errors import InputError
 
 __all__ = [
     "ScaleInfo",
+    "hpko_scales",
     "downsample_for_scale",
     "check_kernel_sizes",
     "kernel_prior_logits",
@@ -48,6 +49,11 @@ def downsample_for_scale(scale: int) -> int:
     if scale < 1:
         raise ValueError(f"HPKO scales start at 1, got {scale}")
     return 2 ** (scale - 1)
+
+
+def hpko_scales(num_kernel_sizes: int, enabled: bool = True) -> Tuple[int, ...]:
+    """Scale indices, coarse to fine: (S, ..., 2, 1) for S kernel sizes, or (1,) without HPKO."""
+    return tuple(range(int(num_kernel_sizes), 0, -1)) if enabled else (1,)
 
 
 MAX_KERNEL_SIZE = 33
@@ -112,7 +118,7 @@ class HPKOScheduler:
     @property
     def scales(self) -> Tuple[int, ...]:
         """Active scale indices, coarse to fine: (3, 2, 1) by default, (1,) without HPKO."""
-        return tuple(range(len(self.kernel_sizes), 0, -1)) if self.enabled else (1,)
+        return hpko_scales(len(self.kernel_sizes), self.enabled)
 
     def info(self, scale: int) -> ScaleInfo:
         """ScaleInfo of scale s."""
@@ -147,36 +153,12 @@ class HPKOScheduler:
         """Whether the blur field runs at ``step`` (False during warm-up)."""
         return step >= self.warmup
 
-    # ------------------------------------------------------------------------------------------ running state
-
-    def initialize_state(self) -> Dict[str, Any]:
-        """Running state: current scale (None before the first active step), the step each scale was first used
-        at (``{s: step}``, for logging / optimizer resets) and the last step seen."""
-        return {
-            "scale": None,
-            "kernel_size": None,
-            "downsample": None,
-            "first_step": {},
-            "last_step": None,
-            "switched": False,
-        }
-
-    def update(self, state: Dict[str, Any], step: int, downscale: Optional[float] = None) -> Optional[ScaleInfo]:
-        """Advance ``state`` to ``step``; returns the ScaleInfo to use, or None during warm-up (blur field off).
-
-        ``downscale`` is the factor the model renders at this step; when given (recommended) it decides the scale,
-        otherwise ``scale_for_step`` does. ``state["switched"]`` is True on the step where the scale changed.
-        """
-        state["last_step"] = step
-        state["switched"] = False
+    def scale_at(self, step: int, downscale: float) -> Optional[ScaleInfo]:
+        """The scale the blur field runs at on ``step`` for a render at 1 / ``downscale``: None during warm-up; the
+        render's own scale (:meth:`scale_for_downscale`), or the step's when ``switch_steps`` are set."""
         if not self.is_active(step):
             return None
-        info = self.scale_for_step(step) if downscale is None else self.scale_for_downscale(downscale)
-        if info.scale != state["scale"]:
-            state["switched"] = state["scale"] is not None
-            state["first_step"].setdefault(info.scale, step)
-        state["scale"], state["kernel_size"], state["downsample"] = info
-        return info
+        return self.scale_for_downscale(downscale) if self.switch_steps is None else self.scale_for_step(step)
 
 
 def kernel_prior_logits(kernel_size: int, sigma: float, floor: float = -8.0) -> Tensor:

@@ -20,7 +20,7 @@ from functools import lru_cache
 import numpy as np
 import torch
 from kornia.filters import filter2d
-from kornia.geometry.transform import resize, warp_perspective
+from kornia.geometry.transform import warp_perspective
 from torch import Tensor, nn
 
 __all__ = [

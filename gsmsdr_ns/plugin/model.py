@@ -15,8 +15,8 @@ Differences from ``SplatfactoModel``, each kept as a small override that extends
 * GS-MSDR's degradation models live in ``degradation`` (:class:`~gsmsdr_ns.blur.degradation_model.DegradationModel`),
   built only for the effects the scene calls for (one ``DegradationProfile`` per training image, from the
   dataparser's ``metadata["degradations"]`` or the ``degradation`` mode): the blur field (MAAN + HPKO, thin lens)
-  for blurred images, the resolution-loss model for images of known lower resolution, nothing for sharp ones. Its
-  HPKO state advances in a training callback before each iteration. While training, ``rgb`` is the render passed
+  for blurred images, the resolution-loss model for images of known lower resolution, nothing for sharp ones. A
+  training render enters it once (plan, forward) and its loss once (``losses``). While training, ``rgb`` is the render passed
   through the image's degradation model (what the loss compares with the degraded photo) and ``rgb_sharp`` the
   render itself; at evaluation ``rgb`` is always the sharp render, and the viewer can also show ``degraded``,
   ``kernel_size`` and ``blur_mask``;
@@ -33,11 +33,7 @@ from typing import Dict, List, Literal, Optional, Tuple, Type, Union
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
-from nerfstudio.engine.callbacks import (
-    TrainingCallback,
-    TrainingCallbackAttributes,
-    TrainingCallbackLocation,
-)
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
@@ -48,14 +44,9 @@ from gsmsdr_ns.blur.degradation_model import (
     crop_margin,
     remap_legacy_keys,
 )
-from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
-from gsmsdr_ns.blur.hpko import HPKOScheduler
+from gsmsdr_ns.blur.field import BlurFieldConfig
+from gsmsdr_ns.blur.profile import training_profiles
 from gsmsdr_ns.data.effects import DegradationMode
-from gsmsdr_ns.blur.profile import (
-    DegradationProfile,
-    ResolutionLossModel,
-    training_profiles,
-)
 from gsmsdr_ns.plugin.checkpoint import check_camera_shake, check_state_dict_shapes, check_thin_lens
 from gsmsdr_ns.plugin.finite_check import NonFiniteLossError, NonFiniteRecorder
 from gsmsdr_ns.plugin.lpips import (
@@ -184,7 +175,6 @@ class GSMSDRModel(SplatfactoModel):
         self._populate_degradation_modules()
         self._nonfinite = NonFiniteRecorder()
         self._train_image_sizes: Dict[int, Tuple[int, int]] = {}  # cam_idx -> full (width, height)
-        self._degraded_step = False  # the last training render went through a degradation model
 
     def _populate_degradation_modules(self) -> None:
         """``degradation``: the :class:`DegradationModel` of the training images (one profile each, from the
@@ -201,30 +191,6 @@ class GSMSDRModel(SplatfactoModel):
         )
         if self.num_train_data > 0:
             CONSOLE.log(f"gsmsdr: training views: {self.degradation.describe_training_views()}")
-
-    # Read-only views of the degradation model's parts (tests, benchmarks and older call sites read them here).
-    @property
-    def profiles(self) -> List[DegradationProfile]:
-        return self.degradation.profiles
-
-    @property
-    def blur_field(self) -> Optional[BlurField]:
-        return self.degradation.blur_field
-
-    @property
-    def resolution_model(self) -> Optional[ResolutionLossModel]:
-        return self.degradation.resolution_model
-
-    @property
-    def hpko(self) -> Optional[HPKOScheduler]:
-        return self.degradation.hpko
-
-    @property
-    def hpko_state(self) -> Optional[Dict]:
-        return self.degradation.hpko_state
-
-    def _describe_modules(self) -> str:
-        return self.degradation.describe()
 
     def _usable_seed_points(self) -> Optional[Tuple[Tensor, Tensor]]:
         """The seed point cloud without non-finite points, or None (random initialisation, with a warning)."""
@@ -270,7 +236,6 @@ class GSMSDRModel(SplatfactoModel):
     def update_to_step(self, step: int) -> None:
         """Loading a checkpoint of step ``step``: render with the SH degree and blur scale training had reached."""
         self.step = step
-        self.degradation.step(step)
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):  # type: ignore[override]
         """Resize the Gaussian parameters to the checkpoint's count *in place*, then load.
@@ -311,7 +276,6 @@ class GSMSDRModel(SplatfactoModel):
             return self.get_empty_outputs(full_width, full_height, self.background_color.to(self.device))
 
         plan = self._degradation_plan(camera, downscale)
-        self._degraded_step = self.training and not plan.is_plain
         if plan.margin:  # the blur reads what lies just outside the frame: render it, crop after blurring
             K = K.clone()
             K[:, :2, 2] += plan.margin
@@ -321,6 +285,7 @@ class GSMSDRModel(SplatfactoModel):
         render, alpha, self.info = timed(
             "rasterization", self._rasterize, gaussians, viewmats, K, width, height, with_depth
         )
+        self.info["degraded"] = not plan.is_plain  # read by step_post_backward, as splatfacto reads its info
         if self.training:
             with stage("densification"):
                 self.strategy.step_pre_backward(
@@ -341,14 +306,17 @@ class GSMSDRModel(SplatfactoModel):
             "background": background,
         }
         if not plan.is_plain:
-            outputs.update(self.degradation(outputs["rgb"], depth, plan, K[0]))
+            outputs["rgb"], aux = self.degradation(outputs["rgb"], depth, plan, K[0])
+            outputs["rgb_sharp"], outputs["degradation"] = aux.sharp, aux
+            if aux.mask is not None:
+                outputs["blur_mask"] = aux.mask
             if plan.margin:
                 for key in ("accumulation", "depth"):
                     if outputs[key] is not None:
                         outputs[key] = crop_margin(outputs[key], plan.margin, dims=(0, 1))
-        elif not self.training and self.config.viewer_blur_outputs and self.blur_field is not None:
+        elif not self.training and self.config.viewer_blur_outputs and self.degradation.blur_field is not None:
             centre = camera.camera_to_worlds.reshape(-1, 3, 4)[0, :3, 3]
-            outputs.update(self.degradation.preview(outputs["rgb"], depth, centre))
+            outputs.update(self.degradation.preview(outputs["rgb"], depth, centre, self.step))
         return outputs
 
     def _train_image_size(self, camera: Cameras) -> Optional[Tuple[int, int]]:
@@ -368,33 +336,28 @@ class GSMSDRModel(SplatfactoModel):
         outside the training set (no ``cam_idx``)."""
         if not self.training or not camera.metadata or "cam_idx" not in camera.metadata:
             return DegradationPlan()
-        return self.degradation.plan(int(camera.metadata["cam_idx"]), downscale)
+        return self.degradation.plan(int(camera.metadata["cam_idx"]), downscale, self.step)
 
     # -- training callbacks ---------------------------------------------------------------------------------
 
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
     ) -> List[TrainingCallback]:
-        """splatfacto's callbacks, then the degradation model's step (HPKO state) before each training iteration;
-        also records the training camera centres for the viewer's blur outputs."""
+        """splatfacto's callbacks; also records the training camera centres for the viewer's blur outputs."""
         pipeline = training_callback_attributes.pipeline
         datamanager = getattr(pipeline, "datamanager", None)
         dataset = getattr(datamanager, "train_dataset", None)
-        if self.blur_field is not None and dataset is not None:
+        if self.degradation.blur_field is not None and dataset is not None:
             self.set_train_camera_centres(dataset.cameras.camera_to_worlds)
         if self.device.type == "cuda":
             require_gsplat_cuda()  # at set-up, not at the first render: a clear error naming what is missing
-        callbacks = super().get_training_callbacks(training_callback_attributes)
-        callbacks.append(
-            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self.degradation.step)
-        )
-        return callbacks
+        return super().get_training_callbacks(training_callback_attributes)
 
     def step_post_backward(self, step: int) -> None:
         """splatfacto's densification after the backward pass, marked as the ``densification`` timing stage."""
         with stage("densification"):
             scale = self.config.degraded_densify_grad_scale
-            if scale != 1.0 and self._degraded_step:
+            if scale != 1.0 and self.info.get("degraded", False):
                 means2d = self.info["means2d"]
                 for grad in (means2d.grad, getattr(means2d, "absgrad", None)):
                     if grad is not None:
@@ -414,13 +377,9 @@ class GSMSDRModel(SplatfactoModel):
         """[1, 3, 4] pose on the model's device, corrected by the camera optimizer while training the views it
         refines (``camera_optimizer_views``)."""
         refine = self.config.camera_optimizer.mode != "off"
-        if self.training and refine and (self.config.camera_optimizer_views == "all" or self._degraded_view(plan)):
+        if self.training and refine and (self.config.camera_optimizer_views == "all" or plan.has_model):
             return self.camera_optimizer.apply_to_camera(camera).to(self.device)
         return camera.camera_to_worlds.to(self.device)
-
-    def _degraded_view(self, plan: DegradationPlan) -> bool:
-        """Whether the plan's training view has a degradation model (whether or not it runs at this step)."""
-        return plan.view_id is not None and not self.degradation.profiles[plan.view_id].is_sharp
 
     def _gaussians_in_crop(self) -> Optional[Dict[str, Tensor]]:
         """The raw Gaussian parameters, restricted to the viewer's crop box at eval time; None if it is empty."""
@@ -477,18 +436,20 @@ class GSMSDRModel(SplatfactoModel):
     # -- losses and metrics ---------------------------------------------------------------------------------
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
-        """splatfacto's loss on ``rgb`` (the simulated degradation while training) plus the blur mask regulariser."""
+        """splatfacto's loss on ``rgb`` (the simulated degradation while training) plus the degradation model's
+        terms (:meth:`DegradationModel.losses`) on steps that ran it."""
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
         if self.training:
-            self.degradation.get_loss_dict(loss_dict, outputs, self._training_target(outputs, batch))
+            aux = outputs.get("degradation")
+            if aux is not None:
+                target = self._training_target(outputs, batch) if aux.kernel_mean is not None else None
+                loss_dict.update(self.degradation.losses(aux, outputs["rgb"], target))
             self._check_finite(loss_dict)
         return loss_dict
 
-    def _training_target(self, outputs, batch) -> Optional[Tensor]:
+    def _training_target(self, outputs, batch) -> Tensor:
         """[H, W, 3] the training image composited on the render's background, its masked pixels replaced by the
-        (detached) render so they add no residual, when the degradation model's loss needs it; else None."""
-        if "blur_kernel_mean" not in outputs:
-            return None
+        (detached) render so they add no residual."""
         gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])[..., :3]
         if "mask" in batch:
             mask = self._downscale_if_required(batch["mask"]).to(self.device)
@@ -498,8 +459,9 @@ class GSMSDRModel(SplatfactoModel):
     def get_metrics_dict(self, outputs, batch) -> Dict[str, Tensor]:
         """splatfacto's metrics; ``blur_kernel_size`` (the HPKO kernel size) on steps where the blur field ran."""
         metrics_dict = super().get_metrics_dict(outputs, batch)
-        if self.training:
-            self.degradation.get_metrics_dict(metrics_dict, outputs)
+        aux = outputs.get("degradation") if self.training else None
+        if aux is not None and aux.kernel_size is not None:
+            metrics_dict["blur_kernel_size"] = aux.kernel_size
         return metrics_dict
 
     def _check_finite(self, loss_dict: Dict[str, Tensor]) -> None:

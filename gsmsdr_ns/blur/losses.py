@@ -1,0 +1,76 @@
+"""The degradation model's loss terms, computed in one place (pure functions).
+
+Each term is added only when the step's degradation produced what it reads (:class:`DegradationAux`): the mask
+regulariser when the field ran with a learnt mask, the kernel-centre regulariser when its kernels' centres were
+taken, the deconvolved residual when the image's mean kernel was.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Dict, NamedTuple, Optional
+
+from torch import Tensor
+
+from gsmsdr_ns.ops.deconvolved_loss import deconvolved_residual
+
+__all__ = ["DegradationAux", "DegradationLossWeights", "degradation_losses", "mask_regulariser", "kernel_centre_regulariser"]
+
+
+class DegradationAux(NamedTuple):
+    """What one degraded training render leaves beside the degraded image, for the losses, metrics and viewer."""
+
+    sharp: Tensor
+    """[H, W, 3] the sharp render (without the render margin)."""
+    mask: Optional[Tensor] = None
+    """[H, W, 1] the field's blend mask; None when the field did not run."""
+    learnt_mask: bool = False
+    """The mask is learnt (mode view's is the constant 1: no regulariser)."""
+    kernel_mean: Optional[Tensor] = None
+    """[1, K, K] detached mean over the image of the field's blend ``m * k + (1 - m) * identity``; None: no
+    deconvolved loss on this step."""
+    kernel_centroids: Optional[Tensor] = None
+    """[1, 2, h, w] centres of mass (pixels) of the field's kernels; None: no kernel-centre regulariser."""
+    kernel_size: Optional[int] = None
+    """The HPKO kernel size the field ran at; None: the field did not run."""
+
+
+@dataclass(frozen=True)
+class DegradationLossWeights:
+    """Weights of the degradation model's loss terms (0: the term is off)."""
+
+    mask: float = 0.001
+    """Mask regulariser mean(m)."""
+    kernel_centre: float = 1.0
+    """Kernel-centre regulariser mean(|c|^2)."""
+    deconvolved: float = 10.0
+    """Deconvolved residual (:mod:`gsmsdr_ns.ops.deconvolved_loss`)."""
+    deconvolved_eps: float = 0.01
+    """Wiener regulariser of the deconvolved residual's weight."""
+
+
+def mask_regulariser(mask: Tensor, weight: float) -> Tensor:
+    """``weight * mean(m)``: pushes blending the blur where it is not needed toward the sharp render."""
+    return weight * mask.mean()
+
+
+def kernel_centre_regulariser(centroids: Tensor, weight: float) -> Tensor:
+    """``weight * mean(|c|^2)`` of the kernels' centres of mass (``centroids`` [B, 2, H, W] in pixels)."""
+    return weight * centroids.square().sum(dim=1).mean()
+
+
+def degradation_losses(
+    aux: DegradationAux, degraded: Tensor, target: Optional[Tensor], weights: DegradationLossWeights
+) -> Dict[str, Tensor]:
+    """Every loss term of one degraded training step: ``blur_mask_reg``, ``blur_kernel_centre`` and, given the
+    ``target`` [H, W, 3] the ``degraded`` render [H, W, 3] is compared with, ``blur_deconvolved``."""
+    losses: Dict[str, Tensor] = {}
+    if aux.mask is not None and aux.learnt_mask and weights.mask > 0:
+        losses["blur_mask_reg"] = mask_regulariser(aux.mask, weights.mask)
+    if aux.kernel_centroids is not None and weights.kernel_centre > 0:
+        losses["blur_kernel_centre"] = kernel_centre_regulariser(aux.kernel_centroids, weights.kernel_centre)
+    if aux.kernel_mean is not None and target is not None and weights.deconvolved > 0:
+        residual = (degraded - target).permute(2, 0, 1)[None]
+        weighted = deconvolved_residual(residual, aux.kernel_mean, weights.deconvolved_eps)
+        losses["blur_deconvolved"] = weights.deconvolved * weighted.square().mean()
+    return losses
