@@ -38,9 +38,9 @@ from PIL import Image
 import gsmsdr_ns.plugin  # noqa: F401  (checkpoint globals, exception hook)
 from gsmsdr_ns._cli import install_excepthook, run_entrypoint
 from gsmsdr_ns.io.errors import DiskFullError, InputError
-from gsmsdr_ns.plugin import checkpoint as ckpt
-from gsmsdr_ns.plugin.checkpoint import (
-    CheckpointMismatchError,
+from gsmsdr_ns.plugin import checkpoint_io as ckpt
+from gsmsdr_ns.plugin.checkpoint_compat import CheckpointMismatchError
+from gsmsdr_ns.plugin.checkpoint_io import (
     check_checkpoint_file,
     checkpoint_file,
     find_checkpoint,
@@ -316,6 +316,29 @@ def test_a_gsmsdr_checkpoint_in_gsmsdr_lite_names_the_blur_field_widths():
     with pytest.raises(CheckpointMismatchError, match=r"view_embedding.weight' has shape \[7, 32\], this model's "
                                                       r"\[4, 32\] .* on the scene it was trained on\.$"):  # fmt: skip
         full.load_state_dict(other_scene.state_dict())
+
+
+def test_the_widths_named_are_read_where_the_model_keeps_them():
+    """Any width option (not only the presets'), found in the tensors it sets, whatever the feature network."""
+
+    def model(**blur_options):
+        blur = dataclasses.replace(gsmsdr_trainer_config().pipeline.model.blur_field, **blur_options)
+        return _model(gsmsdr_trainer_config, blur_field=blur)
+
+    with pytest.raises(CheckpointMismatchError) as caught:
+        model().load_state_dict(model(mid_channels=48, kernel_sizes=(5, 11, 17)).state_dict())
+    assert str(caught.value) == (
+        "gsmsdr: the checkpoint was trained with other widths (blur field n=32, view 32, mid 48, kernels 5/11/17; "
+        "SH degree 3) than this run's config builds (blur field n=32, view 32, mid 64, kernels 5/9/17; SH degree "
+        "3); load it with `ns-train gsmsdr`."
+    )
+    with pytest.raises(CheckpointMismatchError) as caught:  # BAGS' plain CNN as the feature network
+        model(mode="msd_only").load_state_dict(model(mode="msd_only", feature_dim=24).state_dict())
+    assert str(caught.value) == (
+        "gsmsdr: the checkpoint was trained with other widths (blur field n=24, view 32, mid 64, kernels 5/9/17; "
+        "SH degree 3) than this run's config builds (blur field n=32, view 32, mid 64, kernels 5/9/17; SH degree "
+        "3); load it with the method and flags it was trained with."
+    )
 
 
 def test_a_checkpoint_with_a_lens_for_unknown_blur_names_the_flag_to_load_it():

@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gsmsdr_ns.bench.fingerprint import fingerprint
 from gsmsdr_ns.bench.methods import METHODS
 from gsmsdr_ns.bench.real_scenes import DATA_DIR_ENV, RealSceneSpec, resolve_photos
-from gsmsdr_ns.bench.runner import fingerprint
 from gsmsdr_ns.bench.suite_config import RunKey, SuiteConfigError, find_suite_file, load_suite
 from gsmsdr_ns.blur.profile import DegradationProfile
 from gsmsdr_ns.io.colmap import read_colmap
@@ -183,8 +183,8 @@ def test_a_new_estimate_that_changes_no_record_keeps_the_runs_record(built, tmp_
     is re-keyed when only the estimate's fingerprint changed and the records it trained on are the same; it is rerun
     when they differ."""
     import gsmsdr_ns.estimate.records as records
-    from gsmsdr_ns.bench.records import load_record, write_json_atomic
-    from gsmsdr_ns.bench.runner import plan_runs, record_path, rekey_unchanged_estimates, training_records_digest
+    from gsmsdr_ns.bench.records import load_record, record_path, write_json_atomic
+    from gsmsdr_ns.bench.runner import plan_runs, rekey_unchanged_estimates, training_records_digest
 
     suite, work, out = built["suite"], built["work"], tmp_path / "out"
     key = RunKey("fern6-motion", "full", 20, 0)

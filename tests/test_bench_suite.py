@@ -17,7 +17,9 @@ import pytest
 
 from gsmsdr_ns.bench.cli import map_quick
 from gsmsdr_ns.bench.methods import METHODS
-from gsmsdr_ns.bench.runner import fingerprint, finished_record, record_path, run_suite
+from gsmsdr_ns.bench.fingerprint import fingerprint
+from gsmsdr_ns.bench.records import finished_record, record_path
+from gsmsdr_ns.bench.runner import run_suite
 from gsmsdr_ns.bench.suite_config import RunKey, SuiteConfigError, find_suite_file, load_suite
 
 BIN = Path(sys.executable).parent
@@ -200,7 +202,8 @@ lpips: false
 def test_runs_with_the_same_training_train_once(tmp_path: Path) -> None:
     """The sharp upper bound of two scenes made from the same sharp scene trains once; the other run gets a copy of
     its record (its own id and fingerprint), and a rerun reuses both. Real training, tiny scenes."""
-    from gsmsdr_ns.bench.runner import plan_runs, training_identity
+    from gsmsdr_ns.bench.fingerprint import training_identity
+    from gsmsdr_ns.bench.runner import plan_runs
 
     suite = load_suite(write_suite(tmp_path, SHARED_TRAINING_SUITE))
     out = tmp_path / "out"
@@ -231,7 +234,7 @@ def test_a_preset_that_degrades_nothing_shares_its_sharp_photos_scene() -> None:
     """On the real-photo suite, the sharp fern's "sharp photos with the degraded photos' poses" bound, its plain
     Gaussians and every scene's sharp upper bound read the same folder (named without building it), so they train
     once per seed; the degraded scenes' own rows do not."""
-    from gsmsdr_ns.bench.runner import training_identity
+    from gsmsdr_ns.bench.fingerprint import training_identity
 
     suite = load_suite(find_suite_file("real"))
     sharp = suite.scene("fern-sharp")

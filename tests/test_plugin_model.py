@@ -15,7 +15,7 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.models.splatfacto import SH2RGB
 
-from gsmsdr_ns.plugin.checkpoint import checkpoint_safe_globals
+from gsmsdr_ns.plugin.checkpoint_io import checkpoint_safe_globals
 from gsmsdr_ns.plugin.lpips import LPIPSUnavailable, lpips_backbone_cache_path
 from gsmsdr_ns.plugin.model import (
     GSMSDRModelConfig,

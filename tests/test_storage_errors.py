@@ -24,8 +24,8 @@ from gsmsdr_ns._cli import run_entrypoint
 from gsmsdr_ns.io import atomic
 from gsmsdr_ns.io.atomic import atomic_dir, remove_stale_temporaries, temp_sibling_dir, write_text_atomic
 from gsmsdr_ns.io.errors import DiskFullError, require_free_space, storage_error_line
-from gsmsdr_ns.plugin import checkpoint as ckpt
-from gsmsdr_ns.plugin.checkpoint import checkpoint_file, save_checkpoint_atomic
+from gsmsdr_ns.plugin import checkpoint_io as ckpt
+from gsmsdr_ns.plugin.checkpoint_io import checkpoint_file, save_checkpoint_atomic
 
 ENV = dict(os.environ, PYTHONUNBUFFERED="1", COLUMNS="200", OMP_NUM_THREADS="1")
 ENV.pop("GSMSDR_DEBUG", None)
@@ -299,7 +299,7 @@ def test_every_writer_on_a_full_disk_says_so_in_one_line_and_leaves_nothing(tiny
 
 
 def test_a_checkpoints_size_counts_each_tensor_storage_once():
-    from gsmsdr_ns.plugin.checkpoint import tensor_bytes
+    from gsmsdr_ns.plugin.checkpoint_io import tensor_bytes
 
     weights = torch.zeros(1000)
     payload = {"step": 3, "model": {"w": weights, "w_view": weights[:10]}, "optim": [torch.ones(5, dtype=torch.int64)]}

@@ -1,4 +1,5 @@
-"""The bench's records: run records as standard JSON, written and copied with ``gsmsdr_ns.io.atomic``."""
+"""The bench's record store: run records as standard JSON in ``<out>/runs/<run id>.json``, written and copied with
+``gsmsdr_ns.io.atomic``, loaded, and collected for a suite (only records matching the runs' current settings)."""
 
 from __future__ import annotations
 
@@ -6,8 +7,10 @@ import json
 import math
 import shutil
 from pathlib import Path
-from typing import Any, Dict, Optional
+from typing import Any, Dict, List, Optional
 
+from gsmsdr_ns.bench.fingerprint import fingerprint
+from gsmsdr_ns.bench.suite_config import RunKey, Suite
 from gsmsdr_ns.io import atomic
 from gsmsdr_ns.io.atomic import write_text_atomic
 
@@ -51,4 +54,35 @@ def load_record(path: Path) -> Optional[Dict[str, Any]]:
     return record if isinstance(record, dict) and "id" in record else None
 
 
-__all__ = ["copy_file_atomic", "load_record", "write_json_atomic", "write_text_atomic"]
+def record_path(out: Path, key: RunKey) -> Path:
+    """Where run ``key``'s record is kept in the suite's output folder ``out``."""
+    return Path(out) / "runs" / f"{key.id}.json"
+
+
+def finished_record(suite: Suite, out: Path, key: RunKey) -> Optional[Dict[str, Any]]:
+    """The run's record if it exists and matches the run's current settings."""
+    record = load_record(record_path(out, key))
+    if record is None or record.get("fingerprint") != fingerprint(suite, key):
+        return None
+    return record
+
+
+def collect_records(suite: Suite, out: Path) -> List[Dict[str, Any]]:
+    """The suite's finished records in ``out/runs`` (current settings only), in the suite's run order."""
+    records = []
+    for key in suite.runs():
+        record = finished_record(suite, out, key)
+        if record is not None:
+            records.append(record)
+    return records
+
+
+__all__ = [
+    "collect_records",
+    "copy_file_atomic",
+    "finished_record",
+    "load_record",
+    "record_path",
+    "write_json_atomic",
+    "write_text_atomic",
+]

@@ -14,7 +14,7 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from gsmsdr_ns.bench.machine import describe_machine, machine_info
 from gsmsdr_ns.bench.methods import METHODS, TABLE6_METHODS, TABLE7_METHODS
-from gsmsdr_ns.bench.records import copy_file_atomic, write_text_atomic
+from gsmsdr_ns.bench.records import collect_records, copy_file_atomic, write_text_atomic
 from gsmsdr_ns.bench.suite_config import Suite, schedule_settings
 from gsmsdr_ns.bench.timing import CATEGORIES
 from gsmsdr_ns.resources import config_root
@@ -339,8 +339,6 @@ def write_outputs(
     in ``out/runs``)."""
     out = Path(out)
     if records is None:
-        from gsmsdr_ns.bench.runner import collect_records
-
         records = collect_records(suite, out)
     write_csv(records, out / "results.csv")
     write_text_atomic(out / "results.md", format_markdown(suite, records, command, machine, skipped, failed))

@@ -21,97 +21,24 @@ from __future__ import annotations
 import contextlib
 import copy
 import datetime
-import hashlib
-import json
 import signal
 import sys
 import time
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional
 
 from gsmsdr_ns.bench.evaluation import evaluate_test_views, make_lpips
+from gsmsdr_ns.bench.fingerprint import RECORD_VERSION, digest, fingerprint, training_identity
 from gsmsdr_ns.bench.machine import machine_info
-from gsmsdr_ns.bench.methods import METHODS, MethodSpec
-from gsmsdr_ns.bench.records import load_record, write_json_atomic
+from gsmsdr_ns.bench.methods import METHODS
+from gsmsdr_ns.bench.records import collect_records, finished_record, load_record, record_path, write_json_atomic
 from gsmsdr_ns.bench.report import write_outputs
-from gsmsdr_ns.bench.suite_config import RunKey, Suite, schedule_settings
-
-RECORD_VERSION = 1
-"""Bumped when a record's meaning changes: older records are then rerun instead of reused."""
-
+from gsmsdr_ns.bench.suite_config import RunKey, Suite
 
 ALIGNED_KEYS = ("psnr_aligned", "ssim_aligned", "lpips_aligned", "pose_correction_deg")
 """Record fields of a suite with ``align_poses`` (the final evaluation after test-pose alignment)."""
-
-
-def preset_fingerprint(method: MethodSpec) -> str:
-    """The resolved model and optimizer settings of ``method`` (its preset with its changes applied), so a record
-    made before a preset default changed is rerun. Paths are left out, and so are the blur field's settings for
-    methods that never build it (plain, sharp)."""
-    config = method.make_config(Path("data"), Path("outputs"))
-    model, optimizers = config.pipeline.model, dict(config.optimizers)
-    if not method.has_blur_field:
-        model = copy.copy(model)
-        model.blur_field = None
-        optimizers = {k: v for k, v in optimizers.items() if not k.startswith("blur_")}
-    return repr(model) + repr(sorted(optimizers.items()))
-
-
-def fingerprint(suite: Suite, key: RunKey, estimate: bool = True) -> str:
-    """What a record's numbers depend on; a record whose fingerprint differs is rerun. ``estimate=False`` leaves
-    out the estimate's fingerprint (the part :func:`rekey_unchanged_estimates` may forgive)."""
-    method = METHODS[key.method]
-    payload = {
-        "version": RECORD_VERSION,
-        "scene": suite.scene(key.scene).fingerprint(),
-        "method": {"base": method.base, "blur_field": method.blur_field, "sharp_data": method.sharp_data},
-        **_training_settings(suite, key, estimate),
-    }
-    if suite.align_poses:  # only then, so records of suites without alignment keep their fingerprint
-        payload["align_poses"] = True
-    if method.degraded_poses:  # only then: the other methods' records keep their fingerprint
-        payload["method"]["degraded_poses"] = True
-    return _digest(payload)
-
-
-def training_identity(suite: Suite, key: RunKey) -> str:
-    """What run ``key`` trains, whatever its scene and method are called: the images it reads
-    (:meth:`SceneEntry.data_key`), the resolved model and optimizer settings, steps, seed, schedule and evaluation.
-    Runs of a suite with equal identities would train the same model on the same data: one trains, the others copy
-    its record (e.g. the sharp upper bound of every scene degraded from the same sharp photos, or plain Gaussians
-    on a scene whose records say every image is sharp next to that upper bound)."""
-    payload = {
-        "version": RECORD_VERSION,
-        "data": suite.scene(key.scene).data_key(METHODS[key.method]),
-        **_training_settings(suite, key),
-        "align_poses": suite.align_poses,
-    }
-    return _digest(payload)
-
-
-def _training_settings(suite: Suite, key: RunKey, estimate: bool = True) -> Dict[str, Any]:
-    """The settings of run ``key`` both keys above share: resolved preset, steps, seed, schedule, evaluation steps,
-    LPIPS, and (``estimate``) the estimate's fingerprint when the run trains on estimated records."""
-    method = METHODS[key.method]
-    settings = {
-        "preset": preset_fingerprint(method),
-        "steps": key.steps,
-        "seed": key.seed,
-        "schedule": schedule_settings(suite.schedule_for(key.steps)),
-        "eval_steps": suite.eval_steps(key.steps),
-        "lpips": suite.lpips,
-    }
-    if estimate and suite.scene(key.scene).trains_on_estimated_records(method):
-        from gsmsdr_ns.estimate.records import estimate_fingerprint
-
-        settings["estimate"] = estimate_fingerprint()  # a real-photo scene trains on the records estimated for it
-    return settings
-
-
-def _digest(payload: Dict[str, Any]) -> str:
-    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def copied_record(suite: Suite, key: RunKey, source: Dict[str, Any]) -> Dict[str, Any]:
@@ -132,7 +59,7 @@ def records_digest(config) -> str:
     parser = config.pipeline.datamanager.dataparser
     parser.data = config.pipeline.datamanager.data  # as the datamanager hands it over
     records = parser.setup().get_dataparser_outputs("train").metadata.get("degradations")
-    return _digest({"records": records})
+    return digest({"records": records})
 
 
 def training_records_digest(suite: Suite, key: RunKey, scene_root: Path, work_dir: Path, log=None) -> str:
@@ -274,18 +201,6 @@ def _active_modules(model) -> str:
 
 
 # -- the suite ---------------------------------------------------------------------------------------------------
-
-
-def record_path(out: Path, key: RunKey) -> Path:
-    return Path(out) / "runs" / f"{key.id}.json"
-
-
-def finished_record(suite: Suite, out: Path, key: RunKey) -> Optional[Dict[str, Any]]:
-    """The run's record if it exists and matches the run's current settings."""
-    record = load_record(record_path(out, key))
-    if record is None or record.get("fingerprint") != fingerprint(suite, key):
-        return None
-    return record
 
 
 @dataclass
@@ -465,28 +380,11 @@ def run_suite(
     return SuiteOutcome(records, trained, reused, failed, skipped, outputs, copied)
 
 
-def collect_records(suite: Suite, out: Path) -> List[Dict[str, Any]]:
-    """The suite's finished records in ``out/runs`` (current settings only), in the suite's run order."""
-    records = []
-    for key in suite.runs():
-        record = finished_record(suite, out, key)
-        if record is not None:
-            records.append(record)
-    return records
-
-
 __all__ = [
-    "RECORD_VERSION",
     "SuiteOutcome",
-    "collect_records",
-    "fingerprint",
-    "finished_record",
-    "preset_fingerprint",
     "plan_runs",
     "RunPlan",
-    "training_identity",
     "copied_record",
-    "record_path",
     "run_suite",
     "train_and_record",
 ]

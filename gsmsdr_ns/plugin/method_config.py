@@ -28,6 +28,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
 from gsmsdr_ns.blur.field import BlurFieldConfig
 from gsmsdr_ns.plugin.auto_dataparser import GSMSDRAutoDataParserConfig
+from gsmsdr_ns.plugin.checkpoint_compat import register_presets
 from gsmsdr_ns.plugin.datamanager import GSMSDRDatamanagerConfig
 from gsmsdr_ns.plugin.model import GSMSDRModelConfig
 from gsmsdr_ns.plugin.trainer import GSMSDRTrainerConfig
@@ -115,3 +116,7 @@ def gsmsdr_lite_trainer_config() -> GSMSDRTrainerConfig:
         blur_field=BlurFieldConfig(size="lite", kernel_sizes=(5, 9, 13)),
     )
     return _trainer_config("gsmsdr-lite", model, LITE_MAX_STEPS)
+
+
+# checkpoint loading names the preset a checkpoint of another one was trained with (it cannot import this module)
+register_presets(gsmsdr_trainer_config, gsmsdr_lite_trainer_config)

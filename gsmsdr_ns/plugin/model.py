@@ -47,7 +47,12 @@ from gsmsdr_ns.blur.degradation_model import (
 from gsmsdr_ns.blur.field import BlurFieldConfig
 from gsmsdr_ns.blur.profile import training_profiles
 from gsmsdr_ns.data.effects import DegradationMode
-from gsmsdr_ns.plugin.checkpoint import check_camera_shake, check_state_dict_shapes, check_thin_lens
+from gsmsdr_ns.plugin.checkpoint_compat import (
+    check_camera_shake,
+    check_state_dict_shapes,
+    check_thin_lens,
+    checkpoint_layout,
+)
 from gsmsdr_ns.plugin.finite_check import NonFiniteLossError, NonFiniteRecorder
 from gsmsdr_ns.plugin.lpips import (
     LPIPSUnavailable,
@@ -246,9 +251,10 @@ class GSMSDRModel(SplatfactoModel):
         A checkpoint of another preset (other widths) raises ``CheckpointMismatchError`` naming both.
         """
         state_dict = remap_legacy_keys(state_dict, "degradation.")
-        check_thin_lens(self.state_dict(), state_dict)
-        check_camera_shake(self.state_dict(), state_dict)
-        check_state_dict_shapes(self.state_dict(), state_dict)
+        layout = checkpoint_layout(self, self.config.blur_field)
+        check_thin_lens(layout, self.state_dict(), state_dict)
+        check_camera_shake(layout, self.state_dict(), state_dict)
+        check_state_dict_shapes(layout, self.state_dict(), state_dict)
         count = state_dict["gauss_params.means"].shape[0]
         for param in self.gauss_params.values():
             param.data = param.data.new_zeros((count, *param.shape[1:]))

@@ -29,8 +29,8 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from gsmsdr_ns._cli import INTERRUPT_EXIT_STATUS
 from gsmsdr_ns.io.errors import InputError, exception_chain
-from gsmsdr_ns.plugin.checkpoint import (
-    CheckpointMismatchError,
+from gsmsdr_ns.plugin.checkpoint_compat import CheckpointMismatchError
+from gsmsdr_ns.plugin.checkpoint_io import (
     checkpoint_file,
     find_checkpoint,
     load_checkpoint_file,

@@ -1,11 +1,11 @@
-"""nerfstudio checkpoints: loading under torch >= 2.6, finding, checking, reading and writing them atomically.
+"""nerfstudio checkpoint files: loading under torch >= 2.6, finding, checking, reading and writing them atomically.
 
 * :func:`find_checkpoint`, :func:`check_checkpoint_file`, :func:`load_checkpoint_file`: the file ``--load-dir`` /
   ``--load-checkpoint`` mean, with an :class:`InputError` naming the file and what to do when it is missing,
   empty, truncated or damaged, or when the folder is not a checkpoint folder.
 * :func:`save_checkpoint_atomic`: temporary file, fsync, rename; a full disk raises :class:`DiskFullError`.
-* :func:`check_state_dict_shapes`: a checkpoint of another preset (``gsmsdr`` / ``gsmsdr-lite``) raises
-  :class:`CheckpointMismatchError` naming the widths of both instead of torch's size-mismatch list.
+
+Whether a checkpoint's tensors fit the model is :mod:`gsmsdr_ns.plugin.checkpoint_compat`'s concern.
 
 Loading under ``torch.load(..., weights_only=True)`` (torch's default since 2.6):
 
@@ -25,7 +25,6 @@ discovering methods (``ns-train``, ``ns-eval``, ``ns-viewer``) and while reading
 
 from __future__ import annotations
 
-import math
 import os
 import re
 import secrets
@@ -248,154 +247,3 @@ def _fsync_dir(folder: Path) -> None:
         pass
     finally:
         os.close(fd)
-
-
-# -- a checkpoint of another preset ------------------------------------------------------------------------------
-
-_DEGRADATION = "degradation."
-_BLUR_FIELD = _DEGRADATION + "blur_field."
-_KERNEL_HEAD = re.compile(r"^degradation\.blur_field\.heads\.blur\.(\d+)\.weight$")
-
-
-class CheckpointMismatchError(InputError):
-    """A checkpoint whose tensors do not fit the model this config builds (another preset or scene)."""
-
-    def __init__(self, what: str, method: Optional[str] = None, path: Optional[Path] = None, scene: bool = False):
-        self.what, self.method, self.path, self.scene = what, method, path, scene
-        name = f"checkpoint '{path}'" if path is not None else "the checkpoint"
-        load_with = f"`ns-train {method}`" if method else "the method and flags it was trained with"
-        where = " on the scene it was trained on" if scene else ""
-        super().__init__(f"gsmsdr: {name} {what}; load it with {load_with}{where}.")
-
-    def for_file(self, path: Path, method: Optional[str] = None) -> "CheckpointMismatchError":
-        """The same error naming the checkpoint file, and the method its run used when known (its config.yml)."""
-        return CheckpointMismatchError(self.what, method or self.method, path, self.scene)
-
-
-def _first_dim(state: Mapping[str, torch.Tensor], key: str, dim: int) -> Optional[int]:
-    value = state.get(key)
-    return int(value.shape[dim]) if isinstance(value, torch.Tensor) and value.dim() > dim else None
-
-
-def _sh_degree(state: Mapping[str, torch.Tensor]) -> Optional[int]:
-    coefficients = _first_dim(state, "gauss_params.features_rest", 1)
-    return None if coefficients is None else round(math.sqrt(coefficients + 1)) - 1
-
-
-def _blur_field_widths(state: Mapping[str, torch.Tensor]) -> Dict[str, Any]:
-    widths = {
-        "n": _first_dim(state, _BLUR_FIELD + "mcf.rgbd.sfe.weight", 0),
-        "view": _first_dim(state, _BLUR_FIELD + "mcf.view_embedding.weight", 1),
-        "mid": _first_dim(state, _BLUR_FIELD + "heads.base.1.0.weight", 0),
-    }
-    heads = {int(m.group(1)): v for k, v in state.items() if (m := _KERNEL_HEAD.match(k))}
-    if heads:  # scale 1 is the finest; list coarse to fine like BlurFieldConfig.kernel_sizes
-        widths["kernels"] = "/".join(str(round(math.sqrt(heads[s].shape[0]))) for s in sorted(heads, reverse=True))
-    return {name: value for name, value in widths.items() if value is not None}
-
-
-def describe_model_widths(state: Mapping[str, torch.Tensor]) -> str:
-    """The widths a gsmsdr model state dict was built with, as text (``blur field n=32, view 32, mid 64, kernels
-    5/9/17; SH degree 3``): what differs between the ``gsmsdr`` and ``gsmsdr-lite`` presets."""
-    parts = []
-    field = _blur_field_widths(state)
-    if field:
-        parts.append("blur field " + ", ".join(f"{k}={v}" if k == "n" else f"{k} {v}" for k, v in field.items()))
-    degree = _sh_degree(state)
-    if degree is not None:
-        parts.append(f"SH degree {degree}")
-    return "; ".join(parts) or "no blur field"
-
-
-def preset_of(state: Mapping[str, torch.Tensor]) -> Optional[str]:
-    """``"gsmsdr"`` / ``"gsmsdr-lite"`` when the state dict's blur-field width and SH degree are that preset's."""
-    from gsmsdr_ns.plugin.method_config import gsmsdr_lite_trainer_config, gsmsdr_trainer_config
-
-    n, degree = _blur_field_widths(state).get("n"), _sh_degree(state)
-    for make in (gsmsdr_trainer_config, gsmsdr_lite_trainer_config):
-        config = make()
-        model = config.pipeline.model
-        if degree == model.sh_degree and n in (None, model.blur_field.dims.feature_dim):
-            return config.method_name
-    return None
-
-
-def _check_optional_part(
-    model_state: Mapping[str, torch.Tensor],
-    checkpoint_state: Mapping[str, torch.Tensor],
-    key: str,
-    only_in_checkpoint: str,
-    only_in_model: str,
-) -> None:
-    """Raise :class:`CheckpointMismatchError` with ``only_in_checkpoint`` when ``key`` is in the checkpoint and not
-    in this model, with ``only_in_model`` the other way round: an optional module one config builds and the other
-    does not."""
-    theirs, ours = key in checkpoint_state, key in model_state
-    if theirs and not ours:
-        raise CheckpointMismatchError(only_in_checkpoint)
-    if ours and not theirs:
-        raise CheckpointMismatchError(only_in_model)
-
-
-def check_thin_lens(model_state: Mapping[str, torch.Tensor], checkpoint_state: Mapping[str, torch.Tensor]) -> None:
-    """Raise :class:`CheckpointMismatchError` naming the flag to load with when the checkpoint has a thin lens this
-    model does not build, or the other way round."""
-    _check_optional_part(
-        model_state,
-        checkpoint_state,
-        _BLUR_FIELD + "thin_lens.log_aperture",
-        "has a thin lens that this run's config does not build: it was trained with the lens on images blurred by an "
-        "unknown kind of blur, which is now optional (add --pipeline.model.blur-field.thin-lens-for-unknown-kind True)",
-        "has no thin lens, but this run's config builds one (add --pipeline.model.blur-field.thin-lens False, or "
-        "--pipeline.model.blur-field.thin-lens-for-unknown-kind False if it was set)",
-    )
-
-
-def check_camera_shake(model_state: Mapping[str, torch.Tensor], checkpoint_state: Mapping[str, torch.Tensor]) -> None:
-    """Raise :class:`CheckpointMismatchError` naming the flag to load with when the checkpoint has learnt camera
-    shake paths this model does not build, or the other way round."""
-    _check_optional_part(
-        model_state,
-        checkpoint_state,
-        _DEGRADATION + "camera_shake.coefficients",
-        "has camera shake paths that this run's config does not build (add "
-        "--pipeline.model.blur-field.camera-shake True)",
-        "has no camera shake paths, but this run's config builds them (add "
-        "--pipeline.model.blur-field.camera-shake False)",
-    )
-
-
-def check_state_dict_shapes(
-    model_state: Mapping[str, torch.Tensor],
-    checkpoint_state: Mapping[str, torch.Tensor],
-    resized: str = "gauss_params.",
-) -> None:
-    """Raise :class:`CheckpointMismatchError` when a tensor of ``checkpoint_state`` has another shape than the
-    model's (tensors under ``resized``, which loading resizes to the checkpoint's count: their other dimensions).
-
-    The message names the widths of both (:func:`describe_model_widths`) and the preset the checkpoint matches,
-    instead of torch's list of every mismatched tensor.
-    """
-    mismatched = []
-    for key, value in checkpoint_state.items():
-        own = model_state.get(key)
-        if not isinstance(own, torch.Tensor) or not isinstance(value, torch.Tensor):
-            continue
-        theirs, ours = tuple(value.shape), tuple(own.shape)
-        if key.startswith(resized):
-            theirs, ours = theirs[1:], ours[1:]
-        if theirs != ours:
-            mismatched.append((key, tuple(value.shape), tuple(own.shape)))
-    if not mismatched:
-        return
-    trained, built = describe_model_widths(checkpoint_state), describe_model_widths(model_state)
-    method = preset_of(checkpoint_state)
-    if trained != built:
-        raise CheckpointMismatchError(f"was trained with other widths ({trained}) than this run's config builds "
-                                      f"({built})", method)  # fmt: skip
-    key, theirs, ours = mismatched[0]
-    raise CheckpointMismatchError(
-        f"does not fit this model: its '{key}' has shape {list(theirs)}, this model's {list(ours)} "
-        f"({len(mismatched)} tensor(s) differ), so it was trained on another scene (another number of training "
-        "views) or with other settings", method, scene=True,
-    )  # fmt: skip
