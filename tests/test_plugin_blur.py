@@ -434,7 +434,7 @@ def test_a_checkpoint_from_before_the_degradation_model_loads():
     """Old layout: ``blur_field.*``, ``resolution_model.*`` and ``train_camera_centres`` on the model itself."""
     metadata = {"degradations": records("motion", 2) + records("mixres", 2)[1:]}
     model = build(metadata, n=3)
-    model.set_train_camera_centres(torch.stack([look_from([float(i), 0.5, 1.0]) for i in range(3)]))
+    model.degradation.set_train_camera_centres(torch.stack([look_from([float(i), 0.5, 1.0]) for i in range(3)]))
     with torch.no_grad():
         model.degradation.resolution_model.residual.normal_()
         next(model.degradation.blur_field.parameters()).add_(1.0)
@@ -451,7 +451,7 @@ def test_a_checkpoint_from_before_the_degradation_model_loads():
 @pytest.mark.parametrize("mode, kind", [("full", "motion"), ("view", "motion"), ("view", "defocus")])
 def test_eval_rgb_is_the_sharp_render_and_viewer_outputs_are_added(mode, kind):
     model = build({"degradations": records(kind)}, blur_field=BlurFieldConfig(mode=mode))
-    model.set_train_camera_centres(torch.stack([look_from([2.0, 0.5, 1.0]), look_from([-2.0, 0.5, 1.0])] * 2))
+    model.degradation.set_train_camera_centres(torch.stack([look_from([2.0, 0.5, 1.0]), look_from([-2.0, 0.5, 1.0])] * 2))
     camera = make_camera(look_from([-1.9, 0.5, 1.1]), width=64, height=48)
     model.eval()
     outputs = model.get_outputs_for_camera(camera)

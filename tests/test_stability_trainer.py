@@ -58,7 +58,7 @@ def add_callback(trainer, where: str, func, first: bool = True) -> None:
 
 @pytest.mark.parametrize("poison", ["image", "opacities", "means", "scales", "quats"])
 def test_trainer_stops_on_a_nan_naming_the_step(trainer_factory, poison):
-    from gsmsdr_ns.plugin.model import NonFiniteLossError
+    from gsmsdr_ns.plugin.finite_check import NonFiniteLossError
 
     trainer = trainer_factory(max_steps=12)
     model = trainer.pipeline.model

@@ -14,7 +14,7 @@ from typing import Dict, List, Mapping, NamedTuple, Optional, Tuple
 import torch
 from torch import Tensor
 
-__all__ = ["NonFiniteLossError", "NonFiniteRecord", "NonFiniteRecorder"]
+__all__ = ["NonFiniteLossError", "NonFiniteRecord", "NonFiniteRecorder", "FiniteCheckMixin"]
 
 
 class NonFiniteLossError(FloatingPointError):
@@ -89,3 +89,36 @@ class NonFiniteRecorder:
             f"Gaussian parameters: {', '.join(record.bad_params) or 'none'}; {num_gaussians} Gaussians. Lower the "
             "learning rates in --optimizers, check the input images and poses, or resume from an earlier checkpoint."
         )
+
+
+class FiniteCheckMixin:
+    """The non-finite check of a splatfacto-style model: it needs ``config.finite_check_every``, ``gauss_params``,
+    ``step``, ``num_points`` and a :class:`NonFiniteRecorder` in ``_nonfinite``."""
+
+    def _check_finite(self, loss_dict: Dict[str, Tensor]) -> None:
+        """Raise :class:`NonFiniteLossError` if a loss term or a Gaussian parameter has been NaN or infinite.
+
+        Parameters are checked too: a NaN position, scale or rotation only culls its Gaussian, so the loss would
+        stay finite while the scene silently decays. Checked on the device every step, read (a sync) on multiples
+        of ``finite_check_every``; the error names the first bad step, its loss terms and its bad parameters.
+        """
+        every = self.finite_check_interval
+        if every > 0:
+            self._nonfinite.observe(self.step, loss_dict, self.gauss_params)
+            if self.step % every == 0:
+                self._nonfinite.raise_if_seen(self.step, every, self.num_points)
+
+    @property
+    def finite_check_interval(self) -> int:
+        """``finite_check_every`` resolved for the parameters' device (see the config)."""
+        every = self.config.finite_check_every
+        if every is None:
+            return 1 if self.gauss_params["means"].device.type == "cpu" else 10
+        return int(every)
+
+    def raise_if_nonfinite(self) -> None:
+        """Raise NonFiniteLossError if any step since the last read was not finite (one device read); the trainer
+        calls it before writing a checkpoint, so no checkpoint holds a NaN the deferred check has not reported."""
+        every = self.finite_check_interval
+        if every > 0:
+            self._nonfinite.raise_if_seen(self.step, every, self.num_points)

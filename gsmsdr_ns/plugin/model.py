@@ -2,12 +2,11 @@
 
 Differences from ``SplatfactoModel``, each kept as a small override that extends ``super()``:
 
-* device-agnostic: no ``.cuda()``; seed colours are written into the SH coefficients after ``super()`` built the
-  parameters, intrinsics follow the model's device, and ``gsmsdr_ns.render.rasterization`` sends CUDA tensors to
-  gsplat and CPU tensors to our own rasterizer;
-* works offline: LPIPS is built only when torchvision's AlexNet backbone is already in the torch hub cache,
-  otherwise the metric is left out (one warning) instead of crashing on a download;
-* a point cloud that is empty or too small falls back to random initialisation with a warning;
+* device-agnostic: no ``.cuda()`` (``get_outputs`` is rewritten for it: splatfacto's moves the intrinsics with
+  ``.cuda()``); seed colours are written after ``super()`` built the parameters, and ``plugin/gaussians.py``
+  rasterizes CUDA tensors with gsplat and CPU tensors with our own rasterizer;
+* works offline: LPIPS only when its backbone is in the torch hub cache (else one warning, no metric); a point
+  cloud that is empty or too small falls back to random initialisation with a warning;
 * a non-finite loss or Gaussian parameter stops training with :class:`NonFiniteLossError` naming the step (found
   on the device every step, read every ``finite_check_every`` steps: a step does not wait for the device);
 * checkpoints resize the existing Gaussian parameters in place when loaded, so optimizers built before loading
@@ -16,25 +15,22 @@ Differences from ``SplatfactoModel``, each kept as a small override that extends
   built only for the effects the scene calls for (one ``DegradationProfile`` per training image, from the
   dataparser's ``metadata["degradations"]`` or the ``degradation`` mode): the blur field (MAAN + HPKO, thin lens)
   for blurred images, the resolution-loss model for images of known lower resolution, nothing for sharp ones. A
-  training render enters it once (plan, forward) and its loss once (``losses``). While training, ``rgb`` is the render passed
-  through the image's degradation model (what the loss compares with the degraded photo) and ``rgb_sharp`` the
-  render itself; at evaluation ``rgb`` is always the sharp render, and the viewer can also show ``degraded``,
-  ``kernel_size`` and ``blur_mask``;
-* the stages of a step are marked for ``gsmsdr_ns.timing_hooks`` (rasterization, densification; the degradation
-  model marks the blur field and kernel application): no-ops unless a timing recorder is attached.
+  training render enters it once (plan, then forward) and its loss once (``losses``). While training, ``rgb`` is
+  the degraded render (what the loss compares with the photo) and ``rgb_sharp`` the render; at evaluation ``rgb``
+  is the sharp render, and the viewer can also show ``degraded``, ``kernel_size`` and ``blur_mask``;
+* the stages of a step are marked for ``gsmsdr_ns.timing_hooks`` (no-ops unless a timing recorder is attached).
 """
 
 from __future__ import annotations
 
 import contextlib
-import warnings
 from dataclasses import dataclass, field
 from typing import Dict, List, Literal, Optional, Tuple, Type, Union
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
-from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig
+from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
@@ -53,7 +49,16 @@ from gsmsdr_ns.plugin.checkpoint_compat import (
     check_thin_lens,
     checkpoint_layout,
 )
-from gsmsdr_ns.plugin.finite_check import NonFiniteLossError, NonFiniteRecorder
+from gsmsdr_ns.plugin.cameras import TrainImageSizes, intrinsics_at_scale, viewmats_from_camera_to_worlds
+from gsmsdr_ns.plugin.finite_check import FiniteCheckMixin, NonFiniteRecorder
+from gsmsdr_ns.plugin.gaussians import (
+    colours_and_sh_degree,
+    expected_depth,
+    gaussians_in_crop,
+    rasterize_gaussians,
+    usable_seed_points,
+    write_seed_colours,
+)
 from gsmsdr_ns.plugin.lpips import (
     LPIPSUnavailable,
     lpips_backbone_cache_path,
@@ -63,8 +68,6 @@ from gsmsdr_ns.plugin.lpips import (
 from gsmsdr_ns.render.gsplat_backend import require_gsplat_cuda
 from gsmsdr_ns.timing_hooks import stage, timed
 
-GAUSSIAN_PARAM_NAMES = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
-MIN_SEED_POINTS = 4  # splatfacto sizes each Gaussian from its 3 nearest neighbours
 
 
 class GSMSDRWarning(UserWarning):
@@ -106,58 +109,7 @@ class GSMSDRModelConfig(SplatfactoModelConfig):
     None: 1 on the CPU (reading costs no wait there), 10 on a GPU."""
 
 
-# ---------------------------------------------------------------------------------------------------------------
-# camera helpers (pure functions)
-
-
-def viewmats_from_camera_to_worlds(camera_to_worlds: Tensor) -> Tensor:
-    """World-to-camera matrices in gsplat's OpenCV convention from nerfstudio camera-to-world poses.
-
-    Args:
-        camera_to_worlds: [C, 3, 4] (or [C, 4, 4]) poses, OpenGL axes (x right, y up, z backwards).
-
-    Returns:
-        [C, 4, 4] world-to-camera matrices with OpenCV axes (x right, y down, z forwards).
-    """
-    if camera_to_worlds.ndim != 3 or camera_to_worlds.shape[-2] not in (3, 4) or camera_to_worlds.shape[-1] != 4:
-        raise ValueError(f"expected camera_to_worlds of shape [C, 3, 4], got {tuple(camera_to_worlds.shape)}")
-    # constants are built on the device without Python-scalar writes (each would be a host copy per call)
-    rotation = torch.cat([camera_to_worlds[:, :3, :1], -camera_to_worlds[:, :3, 1:3]], dim=2)  # negate camera y, z
-    translation = camera_to_worlds[:, :3, 3:4]
-    rotation_inv = rotation.transpose(1, 2)
-    translation_inv = -rotation_inv @ translation
-    eye = torch.eye(4, dtype=camera_to_worlds.dtype, device=camera_to_worlds.device)
-    bottom = eye[3:].expand(camera_to_worlds.shape[0], 1, 4)
-    return torch.cat([torch.cat([rotation_inv, translation_inv], dim=2), bottom], dim=1)
-
-
-def intrinsics_at_scale(
-    camera: Cameras, downscale: int, device: torch.device, full_size: Optional[Tuple[int, int]] = None
-) -> Tuple[Tensor, int, int]:
-    """Pinhole intrinsics and image size of a single camera rendered ``downscale`` times smaller.
-
-    Matches ``Cameras.rescale_output_resolution(1 / downscale)`` (floor rounding) without mutating the camera.
-    ``full_size``: the camera's (width, height) if known; else it is read from the camera (a sync on a GPU).
-
-    Returns:
-        K: [1, 3, 3] on ``device``; width; height.
-    """
-    # built from the camera's own tensors: Cameras.get_intrinsics_matrices fills a CPU matrix, which on a GPU is four
-    # device-to-host reads and a copy back every step
-    fx, fy, cx, cy = (getattr(camera, name).reshape(-1) for name in ("fx", "fy", "cx", "cy"))
-    zero, one = torch.zeros_like(fx), torch.ones_like(fx)
-    K = torch.stack([fx, zero, cx, zero, fy, cy, zero, zero, one], dim=-1).reshape(-1, 3, 3).to(device)
-    if downscale > 1:
-        K = torch.cat([K[:, :2] / downscale, K[:, 2:]], dim=1)
-    if full_size is None:
-        full_size = int(camera.width.reshape(-1)[0].item()), int(camera.height.reshape(-1)[0].item())
-    return K, full_size[0] // downscale, full_size[1] // downscale
-
-
-# ---------------------------------------------------------------------------------------------------------------
-
-
-class GSMSDRModel(SplatfactoModel):
+class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):
     """Gaussian splatting model of the ``gsmsdr`` method (see the module docstring)."""
 
     config: GSMSDRModelConfig
@@ -165,7 +117,9 @@ class GSMSDRModel(SplatfactoModel):
     # -- construction ---------------------------------------------------------------------------------------
 
     def populate_modules(self) -> None:
-        seed = self._usable_seed_points()
+        seed = None
+        if not self.config.random_init:
+            seed = usable_seed_points(self.seed_points, self.config.num_random, self.config.random_scale, GSMSDRWarning)
         original_seed = self.seed_points
         # Colourless seed: super() then skips its `.cuda()` colour branch; colours are written below.
         self.seed_points = None if seed is None else (seed[0], seed[1][:0])
@@ -174,12 +128,12 @@ class GSMSDRModel(SplatfactoModel):
             super().populate_modules()
         self.seed_points = original_seed
         if seed is not None:
-            self._init_colours(seed[1])
+            write_seed_colours(self.gauss_params["features_dc"], seed[1], self.config.sh_degree)
         if not self.has_lpips:
             warn_lpips_disabled(lpips_path, GSMSDRWarning)
         self._populate_degradation_modules()
         self._nonfinite = NonFiniteRecorder()
-        self._train_image_sizes: Dict[int, Tuple[int, int]] = {}  # cam_idx -> full (width, height)
+        self._train_image_sizes = TrainImageSizes()
 
     def _populate_degradation_modules(self) -> None:
         """``degradation``: the :class:`DegradationModel` of the training images (one profile each, from the
@@ -196,41 +150,6 @@ class GSMSDRModel(SplatfactoModel):
         )
         if self.num_train_data > 0:
             CONSOLE.log(f"gsmsdr: training views: {self.degradation.describe_training_views()}")
-
-    def _usable_seed_points(self) -> Optional[Tuple[Tensor, Tensor]]:
-        """The seed point cloud without non-finite points, or None (random initialisation, with a warning)."""
-        if self.config.random_init:
-            return None
-        if self.seed_points is None:
-            problem = "no point cloud was provided"
-        else:
-            xyz, rgb = self.seed_points
-            finite = torch.isfinite(xyz).all(dim=-1)
-            if rgb.shape[0] == xyz.shape[0]:
-                rgb = rgb[finite]
-            else:
-                rgb = rgb[:0]
-            xyz = xyz[finite]
-            if xyz.shape[0] >= MIN_SEED_POINTS:
-                return xyz, rgb
-            problem = f"the point cloud has {xyz.shape[0]} usable points (need at least {MIN_SEED_POINTS})"
-        warnings.warn(
-            f"gsmsdr: {problem}; initialising {self.config.num_random} random Gaussians in a cube of side "
-            f"{self.config.random_scale} instead. Training will converge more slowly; set "
-            "--pipeline.model.num-random / --pipeline.model.random-scale to tune it.",
-            GSMSDRWarning,
-            stacklevel=3,
-        )
-        return None
-
-    @torch.no_grad()
-    def _init_colours(self, rgb: Tensor) -> None:
-        """Set the base colour of each Gaussian from its seed point's 0-255 RGB (no-op without colours)."""
-        features_dc = self.gauss_params["features_dc"]
-        if rgb.shape[0] != features_dc.shape[0]:
-            return
-        rgb = rgb.to(device=features_dc.device, dtype=features_dc.dtype) / 255.0
-        features_dc.copy_(RGB2SH(rgb) if self.config.sh_degree > 0 else torch.logit(rgb, eps=1e-10))
 
     @property
     def has_lpips(self) -> bool:
@@ -275,8 +194,9 @@ class GSMSDRModel(SplatfactoModel):
             raise ValueError(f"gsmsdr renders one camera at a time, got {camera.shape[0]}")
 
         downscale = self._get_downscale_factor()
-        K, width, height = intrinsics_at_scale(camera, downscale, self.device, self._train_image_size(camera))
-        gaussians = self._gaussians_in_crop()
+        full_size = self._train_image_sizes.get(camera) if self.training else None
+        K, width, height = intrinsics_at_scale(camera, downscale, self.device, full_size)
+        gaussians = gaussians_in_crop(self.gauss_params, self.crop_box, self.training)
         if gaussians is None:
             full_width, full_height = int(camera.width.item()), int(camera.height.item())
             return self.get_empty_outputs(full_width, full_height, self.background_color.to(self.device))
@@ -304,13 +224,8 @@ class GSMSDRModel(SplatfactoModel):
             rgb = self._apply_bilateral_grid(rgb, camera.metadata["cam_idx"], height, width)
         if not self.training:
             background = background.expand(height, width, 3)
-        depth = self._expected_depth(render, alpha) if with_depth else None
-        outputs = {
-            "rgb": rgb.squeeze(0),
-            "depth": depth,
-            "accumulation": alpha.squeeze(0),
-            "background": background,
-        }
+        depth = expected_depth(render, alpha) if with_depth else None
+        outputs = {"rgb": rgb.squeeze(0), "depth": depth, "accumulation": alpha.squeeze(0), "background": background}
         if not plan.is_plain:
             outputs["rgb"], aux = self.degradation(outputs["rgb"], depth, plan, K[0])
             outputs["rgb_sharp"], outputs["degradation"] = aux.sharp, aux
@@ -324,18 +239,6 @@ class GSMSDRModel(SplatfactoModel):
             centre = camera.camera_to_worlds.reshape(-1, 3, 4)[0, :3, 3]
             outputs.update(self.degradation.preview(outputs["rgb"], depth, centre, self.step))
         return outputs
-
-    def _train_image_size(self, camera: Cameras) -> Optional[Tuple[int, int]]:
-        """Full (width, height) of a training camera (``cam_idx``, training mode), read from the camera once per
-        image (training images keep their size; reading it every step would wait for the device); else None."""
-        if not self.training or not camera.metadata or "cam_idx" not in camera.metadata:
-            return None
-        cam_idx = int(camera.metadata["cam_idx"])
-        size = self._train_image_sizes.get(cam_idx)
-        if size is None:
-            size = int(camera.width.reshape(-1)[0].item()), int(camera.height.reshape(-1)[0].item())
-            self._train_image_sizes[cam_idx] = size
-        return size
 
     def _degradation_plan(self, camera: Cameras, downscale: int) -> DegradationPlan:
         """What to simulate for this camera (:meth:`DegradationModel.plan`): nothing at evaluation or for cameras
@@ -354,7 +257,7 @@ class GSMSDRModel(SplatfactoModel):
         datamanager = getattr(pipeline, "datamanager", None)
         dataset = getattr(datamanager, "train_dataset", None)
         if self.degradation.blur_field is not None and dataset is not None:
-            self.set_train_camera_centres(dataset.cameras.camera_to_worlds)
+            self.degradation.set_train_camera_centres(dataset.cameras.camera_to_worlds)
         if self.device.type == "cuda":
             require_gsplat_cuda()  # at set-up, not at the first render: a clear error naming what is missing
         return super().get_training_callbacks(training_callback_attributes)
@@ -370,10 +273,6 @@ class GSMSDRModel(SplatfactoModel):
                         grad.mul_(scale)
             super().step_post_backward(step)
 
-    def set_train_camera_centres(self, camera_to_worlds: Tensor) -> None:
-        """Store the centres of the training cameras ([N, 3, 4] poses, the training split's order)."""
-        self.degradation.set_train_camera_centres(camera_to_worlds)
-
     def get_param_groups(self) -> Dict[str, List[torch.nn.Parameter]]:
         """splatfacto's groups, plus the degradation model's (``blur_field``, ``blur_view_kernels``,
         ``blur_defocus``, ``resolution_model``) for the modules that exist."""
@@ -387,57 +286,16 @@ class GSMSDRModel(SplatfactoModel):
             return self.camera_optimizer.apply_to_camera(camera).to(self.device)
         return camera.camera_to_worlds.to(self.device)
 
-    def _gaussians_in_crop(self) -> Optional[Dict[str, Tensor]]:
-        """The raw Gaussian parameters, restricted to the viewer's crop box at eval time; None if it is empty."""
-        params = {name: self.gauss_params[name] for name in GAUSSIAN_PARAM_NAMES}
-        if self.crop_box is None or self.training:
-            return params
-        inside = self.crop_box.within(self.means).reshape(-1)
-        if not bool(inside.any()):
-            return None
-        return {name: value[inside] for name, value in params.items()}
-
-    def _colours_and_sh_degree(self, gaussians: Dict[str, Tensor]) -> Tuple[Tensor, Optional[int]]:
-        """SH coefficients [N, K, 3] and the degree unlocked so far, or plain RGB [N, 3] when sh_degree is 0."""
-        coefficients = torch.cat([gaussians["features_dc"][:, None, :], gaussians["features_rest"]], dim=1)
-        if self.config.sh_degree == 0:
-            return torch.sigmoid(coefficients[:, 0, :]), None
-        return coefficients, min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
-
     def _rasterize(
         self, gaussians: Dict[str, Tensor], viewmats: Tensor, K: Tensor, width: int, height: int, with_depth: bool
     ) -> Tuple[Tensor, Tensor, Dict]:
-        """Activate the parameters and rasterize: render [1, H, W, 3 or 4], alpha [1, H, W, 1], info."""
-        from gsmsdr_ns.render import (
-            rasterization,  # imported on first render: keeps method discovery light
-        )
-
-        colours, sh_degree = self._colours_and_sh_degree(gaussians)
-        return rasterization(
-            means=gaussians["means"],
-            quats=gaussians["quats"],  # normalised by the rasterizer
-            scales=torch.exp(gaussians["scales"]),
-            opacities=torch.sigmoid(gaussians["opacities"]).squeeze(-1),
-            colors=colours,
-            viewmats=viewmats,
-            Ks=K,
-            width=width,
-            height=height,
-            near_plane=0.01,
-            far_plane=1e10,
-            sh_degree=sh_degree,
-            packed=False,
-            render_mode="RGB+ED" if with_depth else "RGB",
-            sparse_grad=False,
-            absgrad=self.strategy.absgrad,
-            rasterize_mode=self.config.rasterize_mode,
-        )
-
-    @staticmethod
-    def _expected_depth(render: Tensor, alpha: Tensor) -> Tensor:
-        """[H, W, 1] expected depth; empty pixels get the farthest rendered depth."""
-        depth = render[..., 3:4]
-        return torch.where(alpha > 0, depth, depth.detach().max()).squeeze(0)
+        """:func:`~gsmsdr_ns.plugin.gaussians.rasterize_gaussians` with the SH degree unlocked at this step."""
+        config = self.config
+        colours, sh_degree = colours_and_sh_degree(gaussians, config.sh_degree, self.step, config.sh_degree_interval)
+        return rasterize_gaussians(
+            gaussians, colours, sh_degree, viewmats, K, width, height, with_depth, self.strategy.absgrad,
+            config.rasterize_mode,
+        )  # fmt: skip
 
     # -- losses and metrics ---------------------------------------------------------------------------------
 
@@ -470,34 +328,6 @@ class GSMSDRModel(SplatfactoModel):
             metrics_dict["blur_kernel_size"] = aux.kernel_size
         return metrics_dict
 
-    def _check_finite(self, loss_dict: Dict[str, Tensor]) -> None:
-        """Raise :class:`NonFiniteLossError` if a loss term or a Gaussian parameter has been NaN or infinite.
-
-        Parameters are checked too: a NaN position, scale or rotation only culls its Gaussian, so the loss would
-        stay finite while the scene silently decays. Checked on the device every step, read (a sync) on multiples
-        of ``finite_check_every``; the error names the first bad step, its loss terms and its bad parameters.
-        """
-        every = self.finite_check_interval
-        if every > 0:
-            self._nonfinite.observe(self.step, loss_dict, self.gauss_params)
-            if self.step % every == 0:
-                self._nonfinite.raise_if_seen(self.step, every, self.num_points)
-
-    @property
-    def finite_check_interval(self) -> int:
-        """``finite_check_every`` resolved for the parameters' device (see the config)."""
-        every = self.config.finite_check_every
-        if every is None:
-            return 1 if self.gauss_params["means"].device.type == "cpu" else 10
-        return int(every)
-
-    def raise_if_nonfinite(self) -> None:
-        """Raise NonFiniteLossError if any step since the last read was not finite (one device read); the trainer
-        calls it before writing a checkpoint, so no checkpoint holds a NaN the deferred check has not reported."""
-        every = self.finite_check_interval
-        if every > 0:
-            self._nonfinite.raise_if_seen(self.step, every, self.num_points)
-
     def get_image_metrics_and_images(
         self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
     ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
@@ -512,7 +342,4 @@ __all__ = [
     "GSMSDRModel",
     "GSMSDRModelConfig",
     "GSMSDRWarning",
-    "NonFiniteLossError",
-    "intrinsics_at_scale",
-    "viewmats_from_camera_to_worlds",
 ]
