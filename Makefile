@@ -10,7 +10,7 @@ VENV_PYTHON := $(VENV)/bin/python
 STAMP := $(VENV)/.gsmsdr-installed
 PYTEST := $(VENV_PYTHON) -m pytest -q -p no:cacheprovider
 
-.PHONY: venv demo test test-slow test-all clean-venv
+.PHONY: venv demo lint test test-slow test-all clean-venv
 
 venv: $(STAMP)
 
@@ -24,7 +24,14 @@ demo: $(STAMP)
 
 # test: the default suite (pyproject's addopts deselect `slow`); test-slow: long trainings and end-to-end accuracy
 # runs only; test-all: both. A slow or heavily shared machine: GSMSDR_TEST_TIMEOUT_SCALE=3 make test (hang guards).
-test: $(STAMP)
+# lint: ruff (lint + format), the layer contracts of pyproject.toml (lint-imports), and mypy on the typed core.
+lint: $(STAMP)
+	$(VENV)/bin/ruff check gsmsdr_ns tests scripts tools
+	$(VENV)/bin/ruff format --check gsmsdr_ns tests scripts tools
+	$(VENV)/bin/lint-imports
+	$(VENV)/bin/mypy gsmsdr_ns/ops gsmsdr_ns/render gsmsdr_ns/blur
+
+test: lint
 	$(PYTEST)
 
 test-slow: $(STAMP)
