@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -23,9 +25,9 @@ from gsmsdr_ns.estimate.ensemble import (
     parse_ensemble,
     probability,
 )
-from gsmsdr_ns.estimate.fit_ensembles import FitEnsemblesCLI, FitSettings, collect_rows
 from gsmsdr_ns.estimate.records import estimate_fingerprint
 from gsmsdr_ns.io.images import write_image
+from tools.estimate.fit_ensembles import FitEnsemblesCLI, FitSettings, collect_rows
 from test_estimate import defocus_by, dwelling_shake, motion_blur, sharp_views
 
 
@@ -42,6 +44,14 @@ def test_an_ensemble_sums_its_trees_leaves_as_log_odds():
     assert np.allclose(log_odds(model, X), [0.5 - 0.5, 0.5 + 0.7, 0.5 - 0.3])
     assert np.allclose(probability(model, X), 1 / (1 + np.exp(-log_odds(model, X))))
     assert parse_ensemble(text).digest == model.digest != parse_ensemble(text.replace("0.5", "0.25", 1)).digest
+
+
+def test_the_package_imports_neither_the_research_tools_nor_scikit_learn():
+    # the fitting needs scikit-learn, a test dependency only; the installed estimate reads the JSON with numpy
+    code = ("import sys, gsmsdr_ns.estimate, gsmsdr_ns.estimate.cli, gsmsdr_ns.estimate.records; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('sklearn', 'tools')))")  # fmt: skip
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=300)
+    assert out.stdout.strip() == "[]"
 
 
 def test_missing_evidence_becomes_the_missing_value():
@@ -95,7 +105,7 @@ def test_the_builtin_models_read_the_estimate_evidence_and_key_the_cache():
 
 
 def _evaluation_set(root: Path, offset: int) -> Path:
-    """An evaluation set as gsmsdr_ns.estimate.evaluate writes it: two scenes with true records (one shaken, one
+    """An evaluation set as tools.estimate.evaluate writes it: two scenes with true records (one shaken, one
     defocused), each of 4 sharp views, 4 blurred ones and 2 views defocused so mildly that the thresholds call them
     sharp."""
     views = sharp_views()
@@ -171,7 +181,7 @@ def test_the_fit_command_writes_ensembles_the_estimate_reads(evaluation_sets, tm
 def test_a_fit_on_closely_spaced_values_reproduces_scikit_learn_exactly():
     from sklearn.ensemble import GradientBoostingClassifier
 
-    from gsmsdr_ns.estimate.fit_ensembles import fit_ensemble
+    from tools.estimate.fit_ensembles import fit_ensemble
 
     rng = np.random.default_rng(0)
     X = 0.1 + rng.permutation(600)[:, None] * 3e-8 + np.zeros((1, 2))  # neighbours 3e-8 apart: below 7 decimals
@@ -197,7 +207,7 @@ def test_the_fit_refuses_sets_without_both_kinds(evaluation_sets, tmp_path):
 
 
 def test_the_fit_trains_on_exactly_what_the_estimate_reads(evaluation_sets):
-    from gsmsdr_ns.estimate.fit_ensembles import scene_rows
+    from tools.estimate.fit_ensembles import scene_rows
     from gsmsdr_ns.estimate.records import read_folder
 
     scene = evaluation_sets[0] / "synth-motion"

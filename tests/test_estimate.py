@@ -296,7 +296,7 @@ def test_the_spread_of_edge_widths_must_agree_with_the_kind_of_blur(capture):
 
 
 def test_evaluation_scores_a_scene_against_its_records(capture, tmp_path):
-    from gsmsdr_ns.estimate.evaluate import format_table, score_scene
+    from tools.estimate.evaluate import format_table, score_scene
 
     scene = _copy_scene(capture[0], tmp_path / "scene")
     truth = {

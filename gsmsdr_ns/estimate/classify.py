@@ -13,7 +13,7 @@ image is compared with them.
   edges sharp, and so does a view whose content is simply softer.
 * **sharp, confirmed by a fitted ensemble** (the default, ``sharp_from="model"``): the thresholds miss mild blur
   (a lens focused on one depth, on small images), so every image they call sharp is also judged by gradient-boosted
-  trees over all the evidence below (:mod:`.ensemble`, fitted by :mod:`.fit_ensembles` on generated scenes and
+  trees over all the evidence below (:mod:`.ensemble`, fitted by ``tools/estimate/fit_ensembles.py`` on generated scenes and
   degraded real photos whose records hold the truth). An image it calls degraded is treated as one between sharp
   and blurred: the kind ensemble names its blur, or it stays unknown.
 * **motion / defocus, by the fitted ensemble** (the default, ``kind_from="model"``): every number the rules below

@@ -2,8 +2,9 @@
 motion- or defocus-blurred.
 
 The hand-set rules of :mod:`.classify` each read one or two numbers; together the numbers decide much better than
-any rule chain we set by hand. Two ensembles are fitted by :mod:`gsmsdr_ns.estimate.fit_ensembles` on scenes whose
-records hold the truth (results in docs/results/estimate/results.md) and stored as JSON beside this module:
+any rule chain we set by hand. Two ensembles are fitted by ``python -m tools.estimate.fit_ensembles`` (in the
+repository, not the package) on scenes whose records hold the truth (results in docs/results/estimate/results.md)
+and stored as JSON beside this module:
 ``kind_model.json`` (log-odds of motion against defocus) and ``degraded_model.json`` (log-odds that an image the
 rules call sharp is degraded). Both are boosted regression trees evaluated here with numpy.
 
@@ -100,7 +101,7 @@ def parse_ensemble(text: str, source: str = "<text>") -> TreeEnsemble:
         model = TreeEnsemble(features, float(doc["base"]), float(doc["learning_rate"]), tuple(trees),
                              hashlib.sha256(text.encode("utf8")).hexdigest())  # fmt: skip
     except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{source} is not an ensemble written by gsmsdr_ns.estimate.fit_ensembles "
+        raise ValueError(f"{source} is not an ensemble written by python -m tools.estimate.fit_ensembles "
                          f"({exc}); refit it or remove the path to use the built-in one") from exc  # fmt: skip
     return model
 
@@ -115,7 +116,7 @@ def _load(path: str, builtin: Path, what: str) -> TreeEnsemble:
     file = Path(path) if path else builtin
     if not file.is_file():
         raise FileNotFoundError(f"{what} {file} not found; use '' for the built-in one or write one with "
-                                "python -m gsmsdr_ns.estimate.fit_ensembles")  # fmt: skip
+                                "python -m tools.estimate.fit_ensembles (from the repository root)")  # fmt: skip
     stat = file.stat()
     return _parse_file(file, stat.st_ino, stat.st_mtime_ns, stat.st_size)
 

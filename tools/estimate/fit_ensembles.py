@@ -1,10 +1,12 @@
-"""Fit the estimate's two ensembles (:mod:`.ensemble`) on scenes whose records hold the truth, and cross-validate them.
+"""Fit the estimate's two ensembles (:mod:`gsmsdr_ns.estimate.ensemble`) on scenes whose records hold the truth,
+and cross-validate them. Run from the repository root (needs scikit-learn)::
 
-    python -m gsmsdr_ns.estimate.fit_ensembles --work W/A W/B ... [--kind-out K.json] [--degraded-out D.json]
+    python -m tools.estimate.fit_ensembles --work W/A W/B ... [--kind-out K.json] [--degraded-out D.json]
 
 Each ``--work`` folder is one evaluation set as :mod:`.evaluate` writes it (scenes with ``images/`` and a
-``degradation.json`` of true records). Per scene, the estimate's evidence (:class:`~.classify.SetEvidence`) and its
-labels by the hand-set rules alone (``kind_from="rules"``, ``sharp_from="rules"``) are computed; one row per image.
+``degradation.json`` of true records). Per scene, the estimate's evidence
+(:class:`~gsmsdr_ns.estimate.classify.SetEvidence`) and its labels by the hand-set rules alone
+(``kind_from="rules"``, ``sharp_from="rules"``) are computed; one row per image.
 
 * **kind of blur**: the images the rules do not call sharp or mixres whose truth is motion or defocus alone;
   target: motion.
@@ -26,10 +28,10 @@ from typing import Iterator, List, Tuple
 import numpy as np
 import tyro
 
-from ..io.atomic import write_text_atomic
-from ..io.images import read_image
-from .classify import EstimateConfig, decide, set_evidence
-from .ensemble import (
+from gsmsdr_ns.io.atomic import write_text_atomic
+from gsmsdr_ns.io.images import read_image
+from gsmsdr_ns.estimate.classify import EstimateConfig, decide, set_evidence
+from gsmsdr_ns.estimate.ensemble import (
     BUILTIN_DEGRADED_MODEL,
     BUILTIN_KIND_MODEL,
     KIND_FEATURES,
@@ -39,8 +41,8 @@ from .ensemble import (
     parse_ensemble,
     probability,
 )
-from .evaluate import truth_of
-from .features import image_features
+from gsmsdr_ns.estimate.features import image_features
+from tools.estimate.evaluate import truth_of
 
 RULES = EstimateConfig(kind_from="rules", sharp_from="rules")
 """The estimate whose labels select the rows: the hand-set rules, without either ensemble."""
@@ -51,7 +53,7 @@ class EvidenceRows:
     """One row per image of some sets: its evidence, the rules' label and the truth."""
 
     X: np.ndarray
-    """[n, len(KIND_FEATURES)] evidence (:func:`~.ensemble.evidence_matrix`)."""
+    """[n, len(KIND_FEATURES)] evidence (:func:`~gsmsdr_ns.estimate.ensemble.evidence_matrix`)."""
     truth: np.ndarray
     """[n] the records' label (:func:`~.evaluate.truth_of`: sharp, motion, defocus, mixres or a '+' list)."""
     rules: np.ndarray
@@ -87,7 +89,7 @@ def collect_rows(work: Tuple[Path, ...]) -> EvidenceRows:
         scenes = sorted(p for p in Path(folder).iterdir() if (p / "degradation.json").is_file())
         if not scenes:
             raise FileNotFoundError(f"{folder} holds no scene with a degradation.json (write one with "
-                                    "python -m gsmsdr_ns.estimate.evaluate --work ...)")  # fmt: skip
+                                    "python -m tools.estimate.evaluate --work ...)")  # fmt: skip
         for scene in scenes:
             x, labels, truths = scene_rows(scene)
             print(f"{folder}/{scene.name}: {len(labels)} images", flush=True)
@@ -119,8 +121,8 @@ def fit_ensemble(
     X: np.ndarray, y: np.ndarray, settings: FitSettings, target: str, features: Tuple[str, ...] = KIND_FEATURES
 ) -> str:
     """Fit on X [n, len(features)] / y [n] bool and return the ensemble's JSON text
-    (:func:`~.ensemble.ensemble_to_json`; ``features`` names X's columns, ``target`` what y is), checked to reproduce
-    scikit-learn's own decision function."""
+    (:func:`~gsmsdr_ns.estimate.ensemble.ensemble_to_json`; ``features`` names X's columns, ``target`` what y is),
+    checked to reproduce scikit-learn's own decision function."""
     try:
         from sklearn.ensemble import GradientBoostingClassifier
     except ImportError as exc:  # pragma: no cover - scikit-learn comes with nerfstudio's dependencies
@@ -231,7 +233,7 @@ class FitEnsemblesCLI:
     """Fit the degradation estimate's two ensembles on evaluation sets with true records."""
 
     work: Tuple[Path, ...]
-    """Evaluation sets (folders written by python -m gsmsdr_ns.estimate.evaluate --work ...)."""
+    """Evaluation sets (folders written by python -m tools.estimate.evaluate --work ...)."""
     kind_out: Path = BUILTIN_KIND_MODEL
     """Where the kind-of-blur ensemble's JSON goes (default: the one the package ships)."""
     degraded_out: Path = BUILTIN_DEGRADED_MODEL
