@@ -1,12 +1,12 @@
 """Fitted tree ensembles over an image's evidence: is a sharp-looking image degraded, and is a blurred one
 motion- or defocus-blurred.
 
-The hand-set rules of :mod:`.classify` each read one or two numbers; together the numbers decide much better than
-any rule chain we set by hand. Two ensembles are fitted by ``python -m tools.estimate.fit_ensembles`` (in the
+Each number of the evidence (:mod:`.evidence`) sees one trait of a blur; together they decide much better than any
+rule chain we set by hand. Two ensembles are fitted by ``python -m tools.estimate.fit_ensembles`` (in the
 repository, not the package) on scenes whose records hold the truth (results in docs/results/estimate/results.md)
-and stored as JSON beside this module:
-``kind_model.json`` (log-odds of motion against defocus) and ``degraded_model.json`` (log-odds that an image the
-rules call sharp is degraded). Both are boosted regression trees evaluated here with numpy.
+and stored as JSON beside this module: ``kind_model.json`` (log-odds of motion against defocus) and
+``degraded_model.json`` (log-odds that an image the thresholds call sharp is degraded). Both are boosted regression
+trees evaluated here with numpy.
 
 Pure functions over arrays; the only state is the loaded models (immutable values).
 """
@@ -37,7 +37,7 @@ KIND_FEATURES = (
     "edge_sharpness",
     "laplacian_variance",
 )
-"""The evidence the ensembles read, in column order: the names of :class:`~.classify.SetEvidence`'s arrays."""
+"""The evidence the ensembles read, in column order: the names of :class:`~.evidence.SetEvidence`'s arrays."""
 
 MISSING = -1.0
 """The value of a missing number (NaN, None) in the feature matrix: every feature is >= 0 when measured, so the
@@ -46,7 +46,7 @@ trees can route "not measured" on its own."""
 BUILTIN_KIND_MODEL = Path(__file__).with_name("kind_model.json")
 """The kind-of-blur ensemble shipped with the package (log-odds of motion)."""
 BUILTIN_DEGRADED_MODEL = Path(__file__).with_name("degraded_model.json")
-"""The ensemble shipped with the package that flags images the rules call sharp (log-odds of degraded)."""
+"""The ensemble shipped with the package that flags images the thresholds call sharp (log-odds of degraded)."""
 
 
 @dataclass(frozen=True)

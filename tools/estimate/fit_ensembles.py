@@ -5,12 +5,12 @@ and cross-validate them. Run from the repository root (needs scikit-learn)::
 
 Each ``--work`` folder is one evaluation set as :mod:`.evaluate` writes it (scenes with ``images/`` and a
 ``degradation.json`` of true records). Per scene, the estimate's evidence
-(:class:`~gsmsdr_ns.estimate.classify.SetEvidence`) and its labels by the hand-set rules alone
-(``kind_from="rules"``, ``sharp_from="rules"``) are computed; one row per image.
+(:class:`~gsmsdr_ns.estimate.evidence.SetEvidence`, measured with ``--config``) and what its thresholds alone make
+of each image (:func:`~gsmsdr_ns.estimate.classify.threshold_stages`) are computed; one row per image.
 
-* **kind of blur**: the images the rules do not call sharp or mixres whose truth is motion or defocus alone;
+* **kind of blur**: the images the thresholds do not call sharp or mixres whose truth is motion or defocus alone;
   target: motion.
-* **degraded**: the images the rules call sharp whose truth is sharp, motion or defocus; target: degraded.
+* **degraded**: the images the thresholds call sharp whose truth is sharp, motion or defocus; target: degraded.
 
 Gradient-boosted trees (scikit-learn) are fitted on all rows of each and written as JSON; before that, each set is
 scored by the ensembles fitted on the other sets (leave one set out): per set at the estimate's probability
@@ -23,14 +23,13 @@ import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, List, Tuple
+from typing import Iterator, List, Optional, Tuple
 
 import numpy as np
 import tyro
 
-from gsmsdr_ns.io.atomic import write_text_atomic
-from gsmsdr_ns.io.images import read_image
-from gsmsdr_ns.estimate.classify import EstimateConfig, decide, set_evidence
+from gsmsdr_ns.estimate.classify import threshold_stages
+from gsmsdr_ns.estimate.config import EstimateConfig
 from gsmsdr_ns.estimate.ensemble import (
     BUILTIN_DEGRADED_MODEL,
     BUILTIN_KIND_MODEL,
@@ -41,23 +40,22 @@ from gsmsdr_ns.estimate.ensemble import (
     parse_ensemble,
     probability,
 )
-from gsmsdr_ns.estimate.features import image_features
+from gsmsdr_ns.estimate.evidence import measure_images, set_evidence
+from gsmsdr_ns.io.atomic import write_text_atomic
+from gsmsdr_ns.io.images import read_image
 from tools.estimate.evaluate import truth_of
-
-RULES = EstimateConfig(kind_from="rules", sharp_from="rules")
-"""The estimate whose labels select the rows: the hand-set rules, without either ensemble."""
 
 
 @dataclass
 class EvidenceRows:
-    """One row per image of some sets: its evidence, the rules' label and the truth."""
+    """One row per image of some sets: its evidence, what the thresholds make of it and the truth."""
 
     X: np.ndarray
     """[n, len(KIND_FEATURES)] evidence (:func:`~gsmsdr_ns.estimate.ensemble.evidence_matrix`)."""
     truth: np.ndarray
     """[n] the records' label (:func:`~.evaluate.truth_of`: sharp, motion, defocus, mixres or a '+' list)."""
-    rules: np.ndarray
-    """[n] the label the rules alone give (:data:`RULES`)."""
+    stages: np.ndarray
+    """[n] what the thresholds alone make of the image (:func:`~gsmsdr_ns.estimate.classify.threshold_stages`)."""
     group: np.ndarray
     """[n] the set (work folder name) each row comes from."""
     synthetic: np.ndarray
@@ -65,40 +63,41 @@ class EvidenceRows:
 
     def kind_rows(self) -> np.ndarray:
         """[n] bool: the rows the kind-of-blur ensemble is fitted on."""
-        return ~np.isin(self.rules, ["sharp", "mixres"]) & np.isin(self.truth, ["motion", "defocus"])
+        return ~np.isin(self.stages, ["sharp", "mixres"]) & np.isin(self.truth, ["motion", "defocus"])
 
     def degraded_rows(self) -> np.ndarray:
         """[n] bool: the rows the degraded-image ensemble is fitted on."""
-        return (self.rules == "sharp") & np.isin(self.truth, ["sharp", "motion", "defocus"])
+        return (self.stages == "sharp") & np.isin(self.truth, ["sharp", "motion", "defocus"])
 
 
-def scene_rows(scene: Path) -> tuple[np.ndarray, list[str], list[str]]:
-    """(evidence [n, features], rules' label per image, true label per image) of one scene with true records."""
+def scene_rows(
+    scene: Path, config: Optional[EstimateConfig] = None
+) -> tuple[np.ndarray, list[str], list[str]]:
+    """(evidence [n, features], threshold stage per image, true label per image) of one scene with true records,
+    measured with ``config`` (default: the default config)."""
     doc = json.loads((scene / "degradation.json").read_text(encoding="utf8"))
     names = sorted(doc["images"])
-    feats = [image_features(read_image(scene / "images" / n)) for n in names]
-    ev = set_evidence(feats, RULES)
-    labels = [e.label for e in decide(ev, RULES)]
-    return evidence_matrix(ev.columns()), labels, [truth_of(doc["images"][n])[0] for n in names]
+    ev = set_evidence(measure_images([read_image(scene / "images" / n) for n in names], config), config)
+    return evidence_matrix(ev.columns()), threshold_stages(ev, config), [truth_of(doc["images"][n])[0] for n in names]
 
 
-def collect_rows(work: Tuple[Path, ...]) -> EvidenceRows:
-    """The rows of every scene (a folder with degradation.json) in each work folder."""
-    X, truth, rules, group, synthetic = [], [], [], [], []
+def collect_rows(work: Tuple[Path, ...], config: Optional[EstimateConfig] = None) -> EvidenceRows:
+    """The rows of every scene (a folder with degradation.json) in each work folder, measured with ``config``."""
+    X, truth, stages, group, synthetic = [], [], [], [], []
     for folder in work:
         scenes = sorted(p for p in Path(folder).iterdir() if (p / "degradation.json").is_file())
         if not scenes:
             raise FileNotFoundError(f"{folder} holds no scene with a degradation.json (write one with "
                                     "python -m tools.estimate.evaluate --work ...)")  # fmt: skip
         for scene in scenes:
-            x, labels, truths = scene_rows(scene)
-            print(f"{folder}/{scene.name}: {len(labels)} images", flush=True)
+            x, scene_stages, truths = scene_rows(scene, config)
+            print(f"{folder}/{scene.name}: {len(truths)} images", flush=True)
             X.append(x)
-            rules += labels
+            stages += scene_stages
             truth += truths
-            group += [Path(folder).name] * len(labels)
-            synthetic += [scene.name.startswith("synth")] * len(labels)
-    return EvidenceRows(np.concatenate(X), np.array(truth), np.array(rules), np.array(group), np.array(synthetic))
+            group += [Path(folder).name] * len(truths)
+            synthetic += [scene.name.startswith("synth")] * len(truths)
+    return EvidenceRows(np.concatenate(X), np.array(truth), np.array(stages), np.array(group), np.array(synthetic))
 
 
 @dataclass
@@ -187,12 +186,12 @@ def kind_tables(rows: EvidenceRows, p: np.ndarray, threshold: float, sweep: Tupl
 
 def degraded_tables(rows: EvidenceRows, p: np.ndarray, threshold: float, sweep: Tuple[float, ...]) -> str:
     """Markdown, degraded-image rows and their cross-validated probabilities of degraded p: per set and kind of
-    scene, the sharp-vs-degraded accuracy of these rows by the rules alone and with the ensemble's flag at
+    scene, the sharp-vs-degraded accuracy of these rows by the thresholds alone and with the ensemble's flag at
     ``threshold`` (degraded images caught, sharp ones lost); then, over all rows, the same at each of ``sweep``."""
     k = rows.degraded_rows()
     degraded, group, synth = rows.truth[k] != "sharp", rows.group[k], rows.synthetic[k]
-    lines = [f"Images the rules call sharp, leave one set out, probability {threshold}:", "",
-             "| set | scenes | images | degraded | right, rules | right, flagged | caught | sharp lost |",
+    lines = [f"Images the thresholds call sharp, leave one set out, probability {threshold}:", "",
+             "| set | scenes | images | degraded | right, thresholds | right, flagged | caught | sharp lost |",
              "|---|---|---|---|---|---|---|---|"]  # fmt: skip
     flagged = p >= threshold
     for g, kind, m in _per_set(group, synth):
@@ -200,7 +199,7 @@ def degraded_tables(rows: EvidenceRows, p: np.ndarray, threshold: float, sweep: 
         lines.append(f"| {g} | {kind} | {int(m.sum())} | {int(degraded[m].sum())} | "
                      f"{100 * (~degraded[m]).mean():.1f} % | {100 * (flagged == degraded)[m].mean():.1f} % | "
                      f"{int(caught)} | {int(lost)} |")  # fmt: skip
-    lines += ["", "Images the rules call sharp, all sets, by threshold (generated / photos):", "",
+    lines += ["", "Images the thresholds call sharp, all sets, by threshold (generated / photos):", "",
               "| probability | right | caught | sharp lost |", "|---|---|---|---|"]  # fmt: skip
     for t in sweep:
         f = p >= t
@@ -240,6 +239,8 @@ class FitEnsemblesCLI:
     """Where the degraded-image ensemble's JSON goes (default: the one the package ships)."""
     settings: FitSettings = dataclasses.field(default_factory=FitSettings)
     """Boosting settings (both ensembles)."""
+    config: EstimateConfig = dataclasses.field(default_factory=EstimateConfig)
+    """The estimate settings the evidence is measured with and the rows are chosen by."""
     cross_validate: bool = True
     """Print the leave-one-set-out tables first."""
     kind_probability: float = EstimateConfig.kind_probability
@@ -252,7 +253,7 @@ class FitEnsemblesCLI:
     """Thresholds of the degraded table's sweep."""
 
     def main(self) -> List[str]:
-        rows = collect_rows(self.work)
+        rows = collect_rows(self.work, self.config)
         jobs = []
         for name, mask, y, target, out, threshold, sweep, tables in (
             ("kind of blur", rows.kind_rows(), rows.truth == "motion", "motion", self.kind_out,
