@@ -38,7 +38,8 @@ from the image alone (region in focus, directional loss). 4: the region in focus
 blur's shape (detail spread over tiles, edge rise) names the kind the other rules leave unknown. 6: a fitted
 ensemble over all that evidence names the kind. 7: a second ensemble flags degraded images among those the
 thresholds call sharp (``sharp_from="model"``). (The hand-set rule chain of versions 1-5 is gone; the evidence
-it read is what the ensembles read.)"""
+it read is what the ensembles read.) Whether a fitted ensemble reads the numbers it was fitted on is checked by its
+provenance (:func:`~.ensemble.check_provenance`), not by this number."""
 
 THRESHOLD_STAGES = ("mixres", "unknown", "sharp", "between", "blurred")
 """What the thresholds alone make of an image (:func:`threshold_stages`), before either ensemble."""
@@ -161,11 +162,11 @@ def decide(ev: SetEvidence, config: Optional[EstimateConfig] = None) -> list[Deg
     cfg = config or EstimateConfig()
     n = len(ev.sharpness)
     sharp = ev.sharpness
-    p_motion = ensemble_probability(ev, load_kind_model(cfg.kind_model),
+    p_motion = ensemble_probability(ev, load_kind_model(cfg.kind_model, cfg),
                                     f"kind-of-blur model {cfg.kind_model or 'built-in'}")  # fmt: skip
     p_degraded = np.full(n, np.nan)
     if cfg.sharp_from == "model":
-        p_degraded = ensemble_probability(ev, load_degraded_model(cfg.degraded_model),
+        p_degraded = ensemble_probability(ev, load_degraded_model(cfg.degraded_model, cfg),
                                           f"degraded-image model {cfg.degraded_model or 'built-in'}")  # fmt: skip
 
     def kind_in_between(i: int, sure: float) -> tuple[str, float]:

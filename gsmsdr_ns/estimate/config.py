@@ -1,13 +1,13 @@
-"""`EstimateConfig`: the settings of the per-image degradation estimate.
+"""`EstimateConfig`: the settings of the per-image degradation estimate, and which of them the evidence depends on.
 
-A leaf module (no other import of the estimate's) so that the evidence (:mod:`.evidence`) and the decision
-(:mod:`.classify`) read the same settings.
+A leaf module (no other import of the estimate's) so that the evidence (:mod:`.evidence`), the fitted ensembles'
+loader (:mod:`.ensemble`) and the decision (:mod:`.classify`) all read the same settings.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Dict, Literal, Optional
 
 
 @dataclass
@@ -62,4 +62,25 @@ class EstimateConfig:
     """Gaussian blur (px at the analysis size) of the coarse scale that edge steepness is measured against."""
 
 
-__all__ = ["EstimateConfig"]
+EVIDENCE_SETTINGS = (
+    "max_size",
+    "coarse_sigma",
+    "reference_fraction",
+    "min_reference",
+    "min_set_size",
+    "sharp_threshold",
+    "soft_width_ratio",
+)
+"""The :class:`EstimateConfig` fields the ensembles' input numbers depend on: the analysis copy and scale of each
+image's measurements, the set's references they are relative to, and the sharp images (sharp by
+``sharp_threshold`` and not soft-edged) the detail spread is relative to. A fitted ensemble records their values
+(its provenance); the loader refuses it under other values."""
+
+
+def evidence_settings(config: Optional[EstimateConfig] = None) -> Dict[str, Any]:
+    """{name: value} of :data:`EVIDENCE_SETTINGS` in ``config`` (default: the default config)."""
+    cfg = config or EstimateConfig()
+    return {name: getattr(cfg, name) for name in EVIDENCE_SETTINGS}
+
+
+__all__ = ["EstimateConfig", "EVIDENCE_SETTINGS", "evidence_settings"]

@@ -119,9 +119,9 @@ def estimate_fingerprint(config: Optional[EstimateConfig] = None) -> Dict[str, A
 
     cfg = config or EstimateConfig()
     out = {**asdict(cfg), "method_version": METHOD_VERSION}
-    out["kind_model_digest"] = load_kind_model(cfg.kind_model).digest
+    out["kind_model_digest"] = load_kind_model(cfg.kind_model, cfg).digest
     if cfg.sharp_from == "model":
-        out["degraded_model_digest"] = load_degraded_model(cfg.degraded_model).digest
+        out["degraded_model_digest"] = load_degraded_model(cfg.degraded_model, cfg).digest
     return out
 
 

@@ -12,9 +12,11 @@ of each image (:func:`~gsmsdr_ns.estimate.classify.threshold_stages`) are comput
   target: motion.
 * **degraded**: the images the thresholds call sharp whose truth is sharp, motion or defocus; target: degraded.
 
-Gradient-boosted trees (scikit-learn) are fitted on all rows of each and written as JSON; before that, each set is
-scored by the ensembles fitted on the other sets (leave one set out): per set at the estimate's probability
-thresholds, and over all sets at several thresholds.
+Gradient-boosted trees (scikit-learn) are fitted on all rows of each and written as JSON with their provenance (the
+config's :data:`~gsmsdr_ns.estimate.config.EVIDENCE_SETTINGS`, the sets' folder names, the scikit-learn version),
+which the estimate checks when it loads them; before that, each set is scored by the ensembles fitted on the other
+sets (leave one set out): per set at the estimate's probability thresholds, and over all sets at several
+thresholds. :func:`stamp_provenance` adds the block to a file fitted before provenance was recorded.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, List, Optional, Tuple
+from typing import Iterator, List, Mapping, Optional, Tuple
 
 import numpy as np
 import tyro
@@ -37,6 +39,7 @@ from gsmsdr_ns.estimate.ensemble import (
     ensemble_to_json,
     evidence_matrix,
     log_odds,
+    make_provenance,
     parse_ensemble,
     probability,
 )
@@ -116,16 +119,28 @@ class FitSettings:
     """Seed of the row subsampling."""
 
 
+def _scikit_learn():
+    """The sklearn module; ImportError saying how to install it."""
+    try:
+        import sklearn
+        import sklearn.ensemble
+    except ImportError as exc:  # pragma: no cover - a test dependency (pyproject's [test] extra)
+        raise ImportError("fitting the estimate's ensembles needs scikit-learn: pip install scikit-learn") from exc
+    return sklearn
+
+
 def fit_ensemble(
-    X: np.ndarray, y: np.ndarray, settings: FitSettings, target: str, features: Tuple[str, ...] = KIND_FEATURES
+    X: np.ndarray,
+    y: np.ndarray,
+    settings: FitSettings,
+    target: str,
+    features: Tuple[str, ...] = KIND_FEATURES,
+    provenance: Optional[Mapping] = None,
 ) -> str:
     """Fit on X [n, len(features)] / y [n] bool and return the ensemble's JSON text
-    (:func:`~gsmsdr_ns.estimate.ensemble.ensemble_to_json`; ``features`` names X's columns, ``target`` what y is),
-    checked to reproduce scikit-learn's own decision function."""
-    try:
-        from sklearn.ensemble import GradientBoostingClassifier
-    except ImportError as exc:  # pragma: no cover - scikit-learn comes with nerfstudio's dependencies
-        raise ImportError("fitting the estimate's ensembles needs scikit-learn: pip install scikit-learn") from exc
+    (:func:`~gsmsdr_ns.estimate.ensemble.ensemble_to_json`; ``features`` names X's columns, ``target`` what y is,
+    ``provenance`` goes into the file), checked to reproduce scikit-learn's own decision function."""
+    GradientBoostingClassifier = _scikit_learn().ensemble.GradientBoostingClassifier
     if len(set(y.tolist())) < 2:
         raise ValueError(f"the training rows are all {'' if y.all() else 'not '}{target}: add sets with both")
     clf = GradientBoostingClassifier(n_estimators=settings.trees, max_depth=settings.depth,
@@ -137,7 +152,8 @@ def fit_ensemble(
         t = stage.tree_
         trees.append({"left": t.children_left, "right": t.children_right, "feature": np.maximum(t.feature, 0),
                       "threshold": t.threshold, "value": t.value[:, 0, 0]})  # fmt: skip
-    text = ensemble_to_json(features, np.log(prior / (1.0 - prior)), settings.learning_rate, trees, target)
+    text = ensemble_to_json(features, np.log(prior / (1.0 - prior)), settings.learning_rate, trees, target,
+                            provenance)  # fmt: skip
     ours = log_odds(parse_ensemble(text), X)
     theirs = clf.decision_function(X)
     if not np.allclose(ours, theirs, atol=1e-3):
@@ -208,6 +224,29 @@ def degraded_tables(rows: EvidenceRows, p: np.ndarray, threshold: float, sweep: 
     return "\n".join(lines)
 
 
+def stamp_provenance(path: Path, provenance: Mapping) -> str:
+    """Write ``provenance`` (:func:`~gsmsdr_ns.estimate.ensemble.make_provenance`) into the ensemble JSON at
+    ``path``, before its trees (replacing a block already there) -> the new text. Nothing else changes: a file
+    without a block must be in :func:`~gsmsdr_ns.estimate.ensemble.ensemble_to_json`'s form, so that the new text
+    is the old one with the block inserted, and the trees must read back identical; RuntimeError, nothing written,
+    otherwise."""
+    text = Path(path).read_text(encoding="utf8")
+    doc = json.loads(text)
+    if "provenance" not in doc and json.dumps(doc, separators=(",", ":")) != text:
+        raise RuntimeError(f"{path} is not in the form the fit writes; refit it instead of stamping it")
+    stamped = {k: v for k, v in doc.items() if k not in ("provenance", "trees")}
+    stamped["provenance"] = dict(provenance)
+    stamped["trees"] = doc["trees"]
+    new = json.dumps(stamped, separators=(",", ":"))
+    old, ours = parse_ensemble(text, str(path)), parse_ensemble(new, str(path))
+    same = (old.features, old.base, old.learning_rate, len(old.trees)) == (
+        ours.features, ours.base, ours.learning_rate, len(ours.trees))  # fmt: skip
+    if not same or not all(np.array_equal(a, b) for t, u in zip(old.trees, ours.trees) for a, b in zip(t, u)):
+        raise RuntimeError(f"stamping {path} would change its trees; not written")
+    write_text_atomic(path, new)
+    return new
+
+
 def _per_set(group: np.ndarray, synth: np.ndarray) -> Iterator[tuple[str, str, np.ndarray]]:
     """(set, "generated" / "photos", row mask [n]) for each set in order, then "all", skipping empty masks."""
     for g in list(dict.fromkeys(group.tolist())) + ["all"]:
@@ -232,7 +271,8 @@ class FitEnsemblesCLI:
     """Fit the degradation estimate's two ensembles on evaluation sets with true records."""
 
     work: Tuple[Path, ...]
-    """Evaluation sets (folders written by python -m tools.estimate.evaluate --work ...)."""
+    """Evaluation sets (folders written by python -m tools.estimate.evaluate --work ...); their folder names are
+    recorded as the fitting sets."""
     kind_out: Path = BUILTIN_KIND_MODEL
     """Where the kind-of-blur ensemble's JSON goes (default: the one the package ships)."""
     degraded_out: Path = BUILTIN_DEGRADED_MODEL
@@ -240,7 +280,8 @@ class FitEnsemblesCLI:
     settings: FitSettings = dataclasses.field(default_factory=FitSettings)
     """Boosting settings (both ensembles)."""
     config: EstimateConfig = dataclasses.field(default_factory=EstimateConfig)
-    """The estimate settings the evidence is measured with and the rows are chosen by."""
+    """The estimate settings the evidence is measured with (and the rows chosen by); the ones the evidence depends
+    on are recorded in both files, and the estimate reads them only under the same values."""
     cross_validate: bool = True
     """Print the leave-one-set-out tables first."""
     kind_probability: float = EstimateConfig.kind_probability
@@ -254,6 +295,7 @@ class FitEnsemblesCLI:
 
     def main(self) -> List[str]:
         rows = collect_rows(self.work, self.config)
+        provenance = make_provenance(self.config, [Path(w).name for w in self.work], _scikit_learn().__version__)
         jobs = []
         for name, mask, y, target, out, threshold, sweep, tables in (
             ("kind of blur", rows.kind_rows(), rows.truth == "motion", "motion", self.kind_out,
@@ -266,7 +308,7 @@ class FitEnsemblesCLI:
             if self.cross_validate:
                 p = cross_validated_probability(X, y, rows.group[mask], self.settings)
                 print(tables(rows, p, threshold, sweep))
-            jobs.append((out, fit_ensemble(X, y, self.settings, target)))
+            jobs.append((out, fit_ensemble(X, y, self.settings, target, provenance=provenance)))
         for out, text in jobs:  # both fitted before either is written
             write_text_atomic(out, text)
             print(f"wrote {out}")
