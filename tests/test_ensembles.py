@@ -1,11 +1,13 @@
-"""The fitted ensembles (kind of blur, degraded among sharp-looking images): their JSON form and evaluation, the fit
-command on evaluation sets written to disk, and the estimate reading fitted files."""
+"""The fitted ensembles (kind of blur, degraded among sharp-looking images): their JSON form, provenance and
+evaluation, the fit command on evaluation sets written to disk, and the estimate reading fitted files."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,18 +22,23 @@ from gsmsdr_ns.estimate.ensemble import (
     load_degraded_model,
     load_kind_model,
     log_odds,
+    make_provenance,
     parse_ensemble,
     probability,
 )
-from gsmsdr_ns.estimate.fit_ensembles import FitEnsemblesCLI, FitSettings, collect_rows
 from gsmsdr_ns.estimate.records import estimate_fingerprint
 from gsmsdr_ns.io.images import write_image
+from tools.estimate.fit_ensembles import FitEnsemblesCLI, FitSettings, collect_rows
 from test_estimate import defocus_by, dwelling_shake, motion_blur, sharp_views
 
 
 def _stump(feature: int, threshold: float, low: float, high: float) -> dict:
     return {"left": [1, -1, -1], "right": [2, -1, -1], "feature": [feature, 0, 0],
             "threshold": [threshold, -2.0, -2.0], "value": [0.0, low, high]}  # fmt: skip
+
+
+PROVENANCE = make_provenance(EstimateConfig(), ["test"], "none")
+"""The provenance of a hand-made ensemble over evidence measured with the default config."""
 
 
 def test_an_ensemble_sums_its_trees_leaves_as_log_odds():
@@ -42,6 +49,14 @@ def test_an_ensemble_sums_its_trees_leaves_as_log_odds():
     assert np.allclose(log_odds(model, X), [0.5 - 0.5, 0.5 + 0.7, 0.5 - 0.3])
     assert np.allclose(probability(model, X), 1 / (1 + np.exp(-log_odds(model, X))))
     assert parse_ensemble(text).digest == model.digest != parse_ensemble(text.replace("0.5", "0.25", 1)).digest
+
+
+def test_the_package_imports_neither_the_research_tools_nor_scikit_learn():
+    # the fitting needs scikit-learn, a test dependency only; the installed estimate reads the JSON with numpy
+    code = ("import sys, gsmsdr_ns.estimate, gsmsdr_ns.estimate.cli, gsmsdr_ns.estimate.records; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('sklearn', 'tools')))")  # fmt: skip
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=300)
+    assert out.stdout.strip() == "[]"
 
 
 def test_missing_evidence_becomes_the_missing_value():
@@ -62,7 +77,8 @@ def test_a_bad_model_file_is_named(tmp_path):
     with pytest.raises(FileNotFoundError, match="degraded-image model.*missing.json"):
         load_degraded_model(str(tmp_path / "missing.json"))
     elsewhere = tmp_path / "other.json"
-    elsewhere.write_text(ensemble_to_json(["not_measured"], 0.0, 1.0, [_stump(0, 0.0, 1.0, -1.0)], "motion"))
+    elsewhere.write_text(ensemble_to_json(["not_measured"], 0.0, 1.0, [_stump(0, 0.0, 1.0, -1.0)], "motion",
+                                          PROVENANCE))  # fmt: skip
     views = sharp_views()[:4]
     with pytest.raises(ValueError, match="kind-of-blur model .*other.json reads .*not_measured"):
         estimate_degradations(views + [motion_blur(views[0])], EstimateConfig(kind_model=str(elsewhere)))
@@ -74,8 +90,8 @@ def test_a_model_file_rewritten_at_the_same_path_is_read_again(tmp_path):
     from gsmsdr_ns.io.atomic import write_text_atomic
 
     path = tmp_path / "kind.json"
-    first = ensemble_to_json(["a"], 0.0, 1.0, [_stump(0, 0.0, -1.0, 1.0)], "motion")
-    second = ensemble_to_json(["a"], 0.0, 1.0, [_stump(0, 0.0, 1.0, -1.0)], "motion")  # the opposite vote
+    first = ensemble_to_json(["a"], 0.0, 1.0, [_stump(0, 0.0, -1.0, 1.0)], "motion", PROVENANCE)
+    second = ensemble_to_json(["a"], 0.0, 1.0, [_stump(0, 0.0, 1.0, -1.0)], "motion", PROVENANCE)  # the opposite
     write_text_atomic(path, first)
     assert load_kind_model(str(path)).digest == parse_ensemble(first).digest
     assert load_kind_model(str(path)) is load_kind_model(str(path))  # unchanged: read once
@@ -90,12 +106,68 @@ def test_the_builtin_models_read_the_estimate_evidence_and_key_the_cache():
     assert kind.digest != degraded.digest
     assert estimate_fingerprint()["kind_model_digest"] == kind.digest
     assert estimate_fingerprint()["degraded_model_digest"] == degraded.digest
-    rules = estimate_fingerprint(EstimateConfig(kind_from="rules", sharp_from="rules"))
-    assert "kind_model_digest" not in rules and "degraded_model_digest" not in rules
+    rules = estimate_fingerprint(EstimateConfig(sharp_from="rules"))
+    assert rules["kind_model_digest"] == kind.digest and "degraded_model_digest" not in rules
+    # both record the settings of the evidence they read (the defaults), the sets they were fitted on
+    for model in (kind, degraded):
+        assert model.provenance["settings"] == PROVENANCE["settings"]
+        assert model.provenance["fitting_sets"][:3] == ["A", "B", "C"] and len(model.provenance["fitting_sets"]) == 18
+
+
+def _model_with(tmp_path: Path, provenance, name: str = "kind.json") -> Path:
+    """A one-stump kind-of-blur model over the estimate's sharpness at tmp_path / name, with ``provenance`` (None:
+    none)."""
+    path = tmp_path / name
+    path.write_text(ensemble_to_json(["sharpness"], 0.0, 1.0, [_stump(0, 0.5, 1.0, -1.0)], "motion", provenance))
+    return path
+
+
+def test_a_model_fitted_on_the_running_settings_loads(tmp_path):
+    path = _model_with(tmp_path, PROVENANCE)
+    assert load_kind_model(str(path)).provenance == PROVENANCE
+    tuned = EstimateConfig(max_size=512)
+    assert load_kind_model(str(_model_with(tmp_path, make_provenance(tuned, ["T"], "1.0"), "tuned.json")), tuned)
+    # settings the evidence does not depend on may change
+    load_kind_model(str(path), EstimateConfig(kind_probability=0.9, blurred_threshold=0.3, grid_threshold=20.0))
+
+
+def test_a_model_fitted_on_other_settings_is_refused_naming_the_setting(tmp_path):
+    path = _model_with(tmp_path, PROVENANCE)
+    with pytest.raises(ValueError, match=r"kind\.json was fitted on evidence measured with max_size=1024, but the "
+                                         r"estimate runs with max_size=512.*--config\.max-size 1024.*"
+                                         r"tools\.estimate\.fit_ensembles"):  # fmt: skip
+        load_kind_model(str(path), EstimateConfig(max_size=512))
+    # the estimate checks the built-in files too: a sharp threshold moves the sharp images the detail spread is
+    # relative to
+    with pytest.raises(ValueError, match=r"kind-of-blur model .*kind_model\.json .*sharp_threshold=0\.6.*"
+                                         r"sharp_threshold=0\.7"):  # fmt: skip
+        estimate_degradations(sharp_views()[:4], EstimateConfig(sharp_threshold=0.7))
+
+
+def test_a_model_without_provenance_is_refused(tmp_path):
+    path = _model_with(tmp_path, None)
+    with pytest.raises(ValueError, match=r"kind-of-blur model .*kind\.json records no provenance.*refit it with "
+                                         r"python -m tools\.estimate\.fit_ensembles"):  # fmt: skip
+        load_kind_model(str(path))
+    unsettled = {k: v for k, v in PROVENANCE["settings"].items() if k != "coarse_sigma"}
+    with pytest.raises(ValueError, match="does not record the setting coarse_sigma"):
+        load_kind_model(str(_model_with(tmp_path, {**PROVENANCE, "settings": unsettled}, "unsettled.json")))
+
+
+def test_stamping_provenance_leaves_the_trees_byte_for_byte(tmp_path):
+    from tools.estimate.fit_ensembles import stamp_provenance
+
+    path = _model_with(tmp_path, None)
+    before = path.read_text()
+    after = stamp_provenance(path, PROVENANCE)
+    assert path.read_text() == after and load_kind_model(str(path)).provenance == PROVENANCE
+    assert after.replace('"provenance":' + json.dumps(PROVENANCE, separators=(",", ":")) + ",", "") == before
+    restamped = stamp_provenance(path, {**PROVENANCE, "fitting_sets": ["other"]})  # a block already there: replaced
+    assert json.loads(restamped)["provenance"]["fitting_sets"] == ["other"] and restamped.count("provenance") == 1
 
 
 def _evaluation_set(root: Path, offset: int) -> Path:
-    """An evaluation set as gsmsdr_ns.estimate.evaluate writes it: two scenes with true records (one shaken, one
+    """An evaluation set as tools.estimate.evaluate writes it: two scenes with true records (one shaken, one
     defocused), each of 4 sharp views, 4 blurred ones and 2 views defocused so mildly that the thresholds call them
     sharp."""
     views = sharp_views()
@@ -130,6 +202,8 @@ def evaluation_sets(tmp_path_factory) -> tuple[Path, Path]:
 
 
 def test_the_fit_command_writes_ensembles_the_estimate_reads(evaluation_sets, tmp_path, capsys):
+    import sklearn
+
     sets = evaluation_sets
     rows = collect_rows(sets)
     assert len(rows.truth) == 40 and set(rows.group) == {"A", "B"}
@@ -141,13 +215,17 @@ def test_the_fit_command_writes_ensembles_the_estimate_reads(evaluation_sets, tm
                     settings=FitSettings(trees=30, depth=2, learning_rate=0.3, subsample=1.0)).main()  # fmt: skip
     printed = capsys.readouterr().out
     assert "| all | generated | 16 |" in printed  # the leave-one-set-out tables: per set, then by threshold
-    assert "| all | generated | 24 | 8 | 66.7 % |" in printed  # the rules alone call every one of these sharp
+    assert "| all | generated | 24 | 8 | 66.7 % |" in printed  # the thresholds alone call every one of these sharp
     sweep = [line for line in printed.splitlines() if line.startswith("| 0.")]
     kind_sweep = ["0.5", "0.55", "0.6", "0.65", "0.7", "0.75", "0.8"]
     degraded_sweep = ["0.5", "0.6", "0.7", "0.8", "0.9"]
     assert [line.split(" | ")[0][2:] for line in sweep] == kind_sweep + degraded_sweep
     assert sweep[0].endswith("| 0 / 0 |")  # at 0.5 every kind is named: none unknown
     assert sorted(p.name for p in out.iterdir()) == ["degraded.json", "kind.json"]  # no temporary file left behind
+    for name in ("kind.json", "degraded.json"):
+        provenance = json.loads((out / name).read_text())["provenance"]
+        assert provenance["fitting_sets"] == ["A", "B"] and provenance["settings"] == PROVENANCE["settings"]
+        assert provenance["scikit_learn"] == sklearn.__version__
     views = sharp_views()
     images = views[:4] + [motion_blur(views[4]), dwelling_shake(views[5], 10, 2.0), defocus_by(views[6], 3.0),
                           defocus_by(views[7], 3.5), defocus_by(views[2], 0.7), defocus_by(views[3], 0.75)]  # fmt: skip
@@ -171,7 +249,7 @@ def test_the_fit_command_writes_ensembles_the_estimate_reads(evaluation_sets, tm
 def test_a_fit_on_closely_spaced_values_reproduces_scikit_learn_exactly():
     from sklearn.ensemble import GradientBoostingClassifier
 
-    from gsmsdr_ns.estimate.fit_ensembles import fit_ensemble
+    from tools.estimate.fit_ensembles import fit_ensemble
 
     rng = np.random.default_rng(0)
     X = 0.1 + rng.permutation(600)[:, None] * 3e-8 + np.zeros((1, 2))  # neighbours 3e-8 apart: below 7 decimals
@@ -197,7 +275,7 @@ def test_the_fit_refuses_sets_without_both_kinds(evaluation_sets, tmp_path):
 
 
 def test_the_fit_trains_on_exactly_what_the_estimate_reads(evaluation_sets):
-    from gsmsdr_ns.estimate.fit_ensembles import scene_rows
+    from tools.estimate.fit_ensembles import scene_rows
     from gsmsdr_ns.estimate.records import read_folder
 
     scene = evaluation_sets[0] / "synth-motion"

@@ -5,7 +5,8 @@
 * :func:`estimate_scene_records` writes / reads the estimate of a scene as ``degradation.json`` records.
 """
 
-from .classify import LABELS, DegradationEstimate, EstimateConfig, estimate_degradations, estimate_from_features
+from .classify import LABELS, DegradationEstimate, estimate_degradations, estimate_from_features
+from .config import EstimateConfig
 from .features import MIXRES_GROUPS, ImageFeatures, image_features
 from .records import ESTIMATED, estimate_scene_records, write_scene_estimate
 

@@ -19,7 +19,7 @@ from rich.console import Console
 from rich.table import Column, Table
 
 from .._cli import run_entrypoint
-from .classify import EstimateConfig
+from .config import EstimateConfig
 from .records import DEGRADATION_FILE, estimate_entries, is_estimated, write_scene_estimate
 
 CONSOLE = Console()

@@ -3,8 +3,8 @@
 orientations and the places that lost detail (:mod:`.direction`) and the grid an upsampled image carries
 (:mod:`.grid`).
 
-None of them knows about the other images of a set (the set-relative decisions live in
-:mod:`gsmsdr_ns.estimate.classify`). The measurement functions are re-exported here.
+None of them knows about the other images of a set (the set-relative evidence is :mod:`.evidence`, the decision
+:mod:`.classify`). The measurement functions are re-exported here.
 """
 
 from __future__ import annotations

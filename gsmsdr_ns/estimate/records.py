@@ -25,7 +25,8 @@ from ..data.degradation_schema import check_entry
 from ..io.atomic import write_json_atomic
 from ..io.errors import InputError
 from ..io.images import list_images, read_image
-from .classify import METHOD_VERSION, DegradationEstimate, EstimateConfig, estimate_degradations
+from .classify import METHOD_VERSION, DegradationEstimate, estimate_degradations
+from .config import EstimateConfig
 from .ensemble import load_degraded_model, load_kind_model
 
 ESTIMATED = "estimated"
@@ -118,10 +119,9 @@ def estimate_fingerprint(config: Optional[EstimateConfig] = None) -> Dict[str, A
 
     cfg = config or EstimateConfig()
     out = {**asdict(cfg), "method_version": METHOD_VERSION}
-    if cfg.kind_from == "model":
-        out["kind_model_digest"] = load_kind_model(cfg.kind_model).digest
+    out["kind_model_digest"] = load_kind_model(cfg.kind_model, cfg).digest
     if cfg.sharp_from == "model":
-        out["degraded_model_digest"] = load_degraded_model(cfg.degraded_model).digest
+        out["degraded_model_digest"] = load_degraded_model(cfg.degraded_model, cfg).digest
     return out
 
 

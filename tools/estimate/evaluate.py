@@ -1,7 +1,8 @@
-"""Accuracy of the degradation estimate on scenes with known records (prints a table).
+"""Accuracy of the degradation estimate on scenes with known records (prints a table). Run from the repository
+root::
 
-    python -m gsmsdr_ns.estimate.evaluate                      # generated scenes + the real fern photos
-    python -m gsmsdr_ns.estimate.evaluate --photos --size 400 300     # generated scenes only, larger
+    python -m tools.estimate.evaluate                      # generated scenes + the real fern photos
+    python -m tools.estimate.evaluate --photos --size 400 300     # generated scenes only, larger
 
 Scenes: procedural scenes written by ``gsmsdr-synth --variant <v>`` (images rendered, then degraded) and a set of
 real sharp photos (LLFF fern, ``poses_bounds.npy`` + images) degraded by ``gsmsdr-degrade``'s pipeline with the
@@ -27,11 +28,11 @@ from typing import Tuple
 import numpy as np
 import tyro
 
-from ..data.cameras import llff_to_opencv
-from ..io.images import list_images, read_image
-from ..io.photo_sets import find_photo_set, photo_set_roots
-from ..degrade.variants import BUILTIN_PRESETS, VARIANTS
-from .classify import EstimateConfig, estimate_degradations
+from gsmsdr_ns.data.cameras import llff_to_opencv
+from gsmsdr_ns.io.images import list_images, read_image
+from gsmsdr_ns.io.photo_sets import find_photo_set, photo_set_roots
+from gsmsdr_ns.degrade.variants import BUILTIN_PRESETS, VARIANTS
+from gsmsdr_ns.estimate.classify import EstimateConfig, estimate_degradations
 
 SYNTH_VARIANTS = ("sharp", "motion", "defocus", "mixres", "mixed", "motion-strong", "defocus-strong")
 PHOTO_VARIANTS = ("motion", "defocus", "mixres", "motion-defocus", "mixed", "motion-strong", "defocus-strong")
@@ -62,7 +63,7 @@ def llff_transforms(images_dir: Path, poses_bounds: Path) -> dict:
 
 def photo_scene(work: Path, images_dir: Path, variant: str, seed: int = 0) -> Path:
     """Degrade the sharp photos of an LLFF folder with a built-in preset (written once, reused)."""
-    from ..degrade.pipeline import degrade_scene
+    from gsmsdr_ns.degrade.pipeline import degrade_scene
 
     out = work / f"photos-{images_dir.name}-{variant}"
     if (out / "degradation.json").is_file():
@@ -80,8 +81,8 @@ def photo_scene(work: Path, images_dir: Path, variant: str, seed: int = 0) -> Pa
 
 def synth_scene(work: Path, variant: str, size: Tuple[int, int], views: int, seed: int = 0) -> Path:
     """A procedural scene degraded with the variant's preset (written once, reused)."""
-    from ..degrade.variants import generate_variant
-    from ..synth.config import SynthSceneConfig
+    from gsmsdr_ns.degrade.variants import generate_variant
+    from gsmsdr_ns.synth.config import SynthSceneConfig
 
     out = work / f"synth-{variant}-{size[0]}x{size[1]}-{views}"
     if (out / "degradation.json").is_file():

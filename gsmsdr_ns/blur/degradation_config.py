@@ -1,0 +1,115 @@
+"""How a training image's degradation is simulated from the sharp render: :class:`DegradationConfig`.
+
+The blur field's own architecture (widths, modules, kernel sizes, initialisation) is
+:class:`~gsmsdr_ns.blur.field.BlurFieldConfig`; everything around it is here: which models run before it (camera
+shake, thin lens) and when (warm-up, HPKO switch steps), how blur is applied (linear light, a render margin), the
+resolution-loss model, and the weights of the degradation loss terms. Plain dataclass, no nerfstudio import; tyro
+turns it into ``--pipeline.model.degradation-model.*`` options.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any, Dict, Mapping, Optional, Tuple
+
+from gsmsdr_ns.blur.losses import DegradationLossWeights
+
+__all__ = ["DegradationConfig", "split_legacy_blur_field_state"]
+
+
+@dataclass
+class DegradationConfig:
+    """Everything about simulating a training image's degradation except the blur field's architecture."""
+
+    warmup: int = 250
+    """The blur field (and the lens and shake before it) are skipped for the first ``warmup`` steps (BAGS: 250)."""
+    switch_steps: Optional[Tuple[int, ...]] = None
+    """Steps where HPKO goes one scale finer; None: follow the model's resolution schedule (recommended)."""
+    linear_light: bool = True
+    """Apply every blur (shake, lens, field) to linear light (the sRGB-encoded render decoded, blurred, re-encoded): a
+    sensor integrates irradiance over the exposure and the aperture before the camera's tone curve. False: blur the
+    encoded values (BAGS)."""
+    thin_lens: bool = True
+    """Images known to be defocused are first blurred by a learnt thin lens: per-pixel disk kernels whose radius
+    follows the rendered depth, ``aperture * |1/d - 1/d_focus|``, with one aperture and focus per view
+    (:class:`~gsmsdr_ns.blur.defocus.ThinLensDefocus`, optimizer group ``blur_defocus``). Motion-blurred and
+    mixed-resolution images never pay for it."""
+    thin_lens_for_unknown_kind: bool = False
+    """Also put the thin lens before the field on images blurred by an unknown kind of blur (no record, or an
+    estimate that could not tell motion from defocus). Off: the field alone models their blur, whatever it is."""
+    defocus_field: bool = False
+    """Also run the field (per-pixel and per-view kernels, mask) after the thin lens on images known to be defocused
+    only. False: the lens alone models them (the field would compete with it for the same blur); images with motion
+    blur, or nothing known, always run the field. Ignored without ``thin_lens``."""
+    thin_lens_occlusion: bool = True
+    """Each neighbour spreads its own disk and an in-focus foreground hides the blurred background behind it
+    (:func:`~gsmsdr_ns.ops.disk_kernels.occluding_disk_kernels`); False: every pixel gathers its own disk whatever
+    the neighbours' depth (:func:`~gsmsdr_ns.ops.disk_kernels.soft_disk_kernels`)."""
+    thin_lens_initial_aperture: float = 1.0
+    """Starting aperture: CoC radius in pixels per scene unit of inverse depth (small: the untrained lens barely
+    blurs)."""
+    camera_shake: bool = False
+    """Images that may be motion-blurred (records name motion, or the kind of blur is unknown) are first blurred
+    along a learnt camera rotation path (:class:`~gsmsdr_ns.blur.shake.CameraShake`, optimizer group
+    ``blur_shake``), then by the field: a turning camera blurs every pixel along its own path, which roll makes
+    vary across the image. Off by default: on the real-photo suite's shaken fern it did not beat the field alone
+    (docs/design.md)."""
+    shake_samples: int = 9
+    """Time samples of the exposure the render is warped to along the rotation path."""
+    render_margin: bool = False
+    """Render the current kernel's half-width beyond every border of a blurred image and crop after blurring: a
+    photo's border pixels are blurred with what lay just outside the frame, which replicate padding cannot know.
+    Off by default: on the real-photo suite's shaken fern it moved PSNR within the seed noise (docs/design.md)."""
+    resolution_kernel_size: int = 3
+    """Size of the learned residual kernel of the resolution-loss model (images of known lower resolution)."""
+    mask_reg_weight: float = 0.001
+    """Weight of the blur field's mask regulariser mean(m) (BAGS: 0.001)."""
+    kernel_centre_weight: float = 1.0
+    """Weight of the kernel-centre regulariser: mean squared distance (pixels) of each kernel's centre of mass from
+    its pixel, on images whose pose was estimated from the photo (structure-from-motion puts a blurred photo's pose
+    near the centre of its blur; a kernel free to shift lets the sharp scene drift off that pose by a different
+    amount in every view). Images whose records give the exact mid-exposure pose of a simulated shake (generated
+    and ``gsmsdr-degrade`` scenes) are not centred. 0: off."""
+    deconvolved_loss_weight: float = 10.0
+    """Weight of the deconvolved residual loss (``ops/deconvolved_loss.py``) on images the field blurs: the mean
+    squared residual weighted by the inverse of the image's mean kernel (loss ``blur_deconvolved``), so the detail the
+    blur attenuates reaches the Gaussians at about full strength instead of attenuated twice. 0: off (the paper's
+    loss alone)."""
+    deconvolved_loss_eps: float = 0.01
+    """Wiener regulariser of that weight: frequencies the blur keeps below sqrt(eps) are amplified at most
+    eps^-1/2 times (10x), so noise and frequencies the blur removed are not blown up."""
+
+    def __post_init__(self) -> None:
+        if self.warmup < 0:
+            raise ValueError(f"warmup must be >= 0, got {self.warmup}")
+        if not self.thin_lens_initial_aperture > 0:
+            raise ValueError(f"thin_lens_initial_aperture must be > 0, got {self.thin_lens_initial_aperture}")
+        if not self.deconvolved_loss_weight >= 0:
+            raise ValueError(f"deconvolved_loss_weight must be >= 0, got {self.deconvolved_loss_weight}")
+        if not self.deconvolved_loss_eps > 0:
+            raise ValueError(f"deconvolved_loss_eps must be > 0, got {self.deconvolved_loss_eps}")
+        if not self.kernel_centre_weight >= 0:
+            raise ValueError(f"kernel_centre_weight must be >= 0, got {self.kernel_centre_weight}")
+        if not self.mask_reg_weight >= 0:
+            raise ValueError(f"mask_reg_weight must be >= 0, got {self.mask_reg_weight}")
+        if self.shake_samples < 1:
+            raise ValueError(f"shake_samples must be >= 1, got {self.shake_samples}")
+        if self.resolution_kernel_size < 1 or self.resolution_kernel_size % 2 == 0:
+            raise ValueError(f"resolution_kernel_size must be a positive odd integer, got {self.resolution_kernel_size}")
+
+    @property
+    def loss_weights(self) -> DegradationLossWeights:
+        return DegradationLossWeights(
+            self.mask_reg_weight, self.kernel_centre_weight, self.deconvolved_loss_weight, self.deconvolved_loss_eps
+        )
+
+
+DEGRADATION_FIELDS = tuple(f.name for f in fields(DegradationConfig))
+
+
+def split_legacy_blur_field_state(blur_field_state: Mapping[str, Any]) -> Tuple[Dict[str, Any], Dict[str, Any]]:
+    """A ``BlurFieldConfig``'s attributes as configs written before :class:`DegradationConfig` existed held them,
+    split into (the blur field's own, ``DegradationConfig`` keyword arguments)."""
+    own = {k: v for k, v in blur_field_state.items() if k not in DEGRADATION_FIELDS}
+    moved = {k: v for k, v in blur_field_state.items() if k in DEGRADATION_FIELDS}
+    return own, moved
