@@ -21,7 +21,7 @@ import sys
 import threading
 import warnings
 from pathlib import Path
-from typing import Optional
+from typing import Literal, Optional
 
 import torch
 
@@ -197,7 +197,9 @@ class CppExtension:
             return "torch"
         return self.choose_backend(requested, unavailable, fallback, stacklevel + 1)
 
-    def choose_backend(self, requested: str, unavailable: str, fallback: str, stacklevel: int = 2) -> str:
+    def choose_backend(
+        self, requested: str, unavailable: str, fallback: str, stacklevel: int = 2
+    ) -> Literal["cpp", "torch"]:
         """"cpp" when the extension loads; else "torch", warning once per process why.
 
         `requested` is "auto" or "cpp" (callers handle "torch" and invalid values, whose messages differ); an

@@ -73,6 +73,8 @@ class ThinLensDefocus(nn.Module):
     training resolution per scene unit of inverse depth; ``pixel_scale`` (render width / full width) converts.
     """
 
+    focus_initialised: Tensor  # buffer (register_buffer in __init__)
+
     def __init__(
         self, num_views: int, initial_aperture: float = 1.0, softness: float = 0.25, occlusion: bool = True
     ) -> None:

@@ -175,6 +175,8 @@ class DegradationModel(nn.Module):
     would be without it.
     """
 
+    train_camera_centres: Tensor  # buffer, registered in __init__ when there is a blur field
+
     def __init__(
         self,
         profiles: Sequence[DegradationProfile],
@@ -313,6 +315,7 @@ class DegradationModel(nn.Module):
             blur_scale = self.hpko.scale_at(step, render_downscale)
         factor = 1.0
         if profile.needs_resolution_model and self.resolution_model is not None:
+            assert profile.mixres_factor is not None  # needs_resolution_model: a known factor > 1
             factor = effective_factor(profile.mixres_factor, render_downscale)
         if field is None or blur_scale is None:
             return DegradationPlan(view_id, resolution_factor=factor, render_downscale=render_downscale, has_model=True)

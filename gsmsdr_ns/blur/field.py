@@ -289,7 +289,7 @@ class BlurField(nn.Module):
         self.scales: Tuple[int, ...] = hpko_scales(len(config.kernel_sizes), mods.hpko)
         self.mcf: Optional[ContextualFeatures] = None
         self.mca: Optional[MCA] = None
-        self.heads: nn.Module
+        self.heads: Union[HPKOHeads, ViewKernels]
         self.thin_lens: Optional[ThinLensDefocus] = None
         if config.thin_lens and use_thin_lens:
             self.thin_lens = ThinLensDefocus(
@@ -306,7 +306,7 @@ class BlurField(nn.Module):
             return
         in_ch = 4 if self.uses_depth else 3
         if mods.maan:
-            net: nn.Module = RGBDFeatures(
+            net: Union[RGBDFeatures, BAGSFeatures] = RGBDFeatures(
                 in_ch, dims.feature_dim, dims.num_fans, mods.gaka, mods.safm, config.layer_scale_init
             )
         else:

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple, Optional, Sequence, Tuple
+from typing import NamedTuple, Optional, Sequence, Tuple, cast
 
 import torch
 import torch.nn.functional as F
@@ -258,18 +258,19 @@ class HPKOHeads(nn.Module):
         for s in self.scales:
             k = self.kernel_sizes[s]
             self.base[str(s)] = nn.Sequential(nn.Conv2d(c, mid_channels, 1), nn.ReLU())
-            self.blur[str(s)] = nn.Conv2d(mid_channels, k * k, 1)
-            self.mask[str(s)] = nn.Conv2d(mid_channels, 1, 1)
+            blur = self.blur[str(s)] = nn.Conv2d(mid_channels, k * k, 1)
+            mask = self.mask[str(s)] = nn.Conv2d(mid_channels, 1, 1)
             with torch.no_grad():
                 # small per-pixel variation around the bias: the kernels start as the prior (or the coarser kernel)
-                self.blur[str(s)].weight.mul_(head_init_scale)
-                self.mask[str(s)].weight.mul_(head_init_scale)
+                blur.weight.mul_(head_init_scale)
+                mask.weight.mul_(head_init_scale)
+                assert blur.bias is not None and mask.bias is not None  # built with a bias
                 if previous is None or not self.progressive:
-                    self.blur[str(s)].bias.copy_(kernel_prior_logits(k, prior_sigma))
-                    self.mask[str(s)].bias.fill_(math.log(mask_init / (1.0 - mask_init)))
+                    blur.bias.copy_(kernel_prior_logits(k, prior_sigma))
+                    mask.bias.fill_(math.log(mask_init / (1.0 - mask_init)))
                 else:
-                    self.blur[str(s)].bias.zero_()
-                    self.mask[str(s)].bias.zero_()
+                    blur.bias.zero_()
+                    mask.bias.zero_()
             if self.num_views:
                 self.view_logits[str(s)] = nn.Parameter(torch.zeros(self.num_views, k * k))
             if previous is not None and self.progressive:
@@ -288,10 +289,13 @@ class HPKOHeads(nn.Module):
         for s in self.scales:  # coarse to fine, stop at the requested scale
             f = self.base[str(s)](f)
             if self.progressive or s == scale:
-                z, y = self.blur[str(s)](f), self.mask[str(s)](f)
+                blur = cast(nn.Conv2d, self.blur[str(s)])
+                z, y = blur(f), self.mask[str(s)](f)
                 if not self.pixel_kernels:
-                    z = self.blur[str(s)].bias[None, :, None, None].expand_as(z)
+                    assert blur.bias is not None  # the heads' convolutions are built with a bias
+                    z = blur.bias[None, :, None, None].expand_as(z)
                 if self.num_views:
+                    assert view_ids is not None  # checked on entry when there are per-view kernels
                     z = z + self.view_logits[str(s)][view_ids.long()][:, :, None, None].to(z.dtype)
                 if self.progressive and logits is not None:
                     upsample = getattr(self, f"upsample_{s}")
@@ -300,6 +304,7 @@ class HPKOHeads(nn.Module):
                 logits, mask_logits = z, y
             if s == scale:
                 break
+        assert logits is not None and mask_logits is not None  # scale is one of self.scales: the loop set them
         return F.softmax(logits, dim=1), torch.sigmoid(mask_logits)
 
     def per_view_parameters(self):
@@ -375,6 +380,7 @@ class ViewKernels(nn.Module):
                 logits = z
             if s == scale:
                 break
+        assert logits is not None  # scale is one of self.scales: the loop set it
         kernels = F.softmax(logits, dim=1)[:, :, None, None].expand(-1, -1, height, width)
         mask = kernels.new_ones(1, 1, 1, 1).expand(len(ids), 1, height, width)
         return kernels, mask

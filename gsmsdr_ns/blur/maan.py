@@ -15,7 +15,7 @@ Every module here works on [B, C, H, W] feature maps; all convolutions pad so th
 from __future__ import annotations
 
 import math
-from typing import List, Optional, Sequence
+from typing import List, Optional, Sequence, Union
 
 import torch
 import torch.nn.functional as F
@@ -328,7 +328,12 @@ class ContextualFeatures(nn.Module):
     """
 
     def __init__(
-        self, num_views: int, view_dim: int, pos_channels: int, rgbd: nn.Module, detach_inputs: bool = True
+        self,
+        num_views: int,
+        view_dim: int,
+        pos_channels: int,
+        rgbd: Union[RGBDFeatures, BAGSFeatures],
+        detach_inputs: bool = True,
     ) -> None:
         super().__init__()
         if num_views < 1:

@@ -237,7 +237,12 @@ class ResolutionLossModel(nn.Module):
 
     def kernels(self, view_ids: Optional[Tensor], batch: int) -> Tensor:
         """Residual kernels ``delta + W - mean(W)``: [B, k*k], each summing to 1."""
-        w = self.residual if self.num_views is None else self.residual[view_ids.long()]
+        w: Tensor
+        if self.num_views is None:
+            w = self.residual
+        else:
+            assert view_ids is not None  # per-view residuals: forward checks that view_ids are given
+            w = self.residual[view_ids.long()]
         w = w - w.mean(dim=1, keepdim=True)
         delta = torch.zeros_like(w)
         delta[:, (self.kernel_size * self.kernel_size) // 2] = 1.0

@@ -97,6 +97,9 @@ class CameraShake(nn.Module):
         seed: seed of the initial coefficients' generator (the global random stream is left alone).
     """
 
+    basis_through_pose: Tensor  # buffers (register_buffer in __init__)
+    basis_centred: Tensor
+
     def __init__(self, num_views: int, num_samples: int = 9, initial_radians: float = 1e-3, seed: int = 0) -> None:
         super().__init__()
         if num_views < 1:

@@ -75,7 +75,7 @@ class _Tap:
 def _tap_terms(
     r_q: Tensor, z_q: Tensor, radius: Tensor, inverse_depth: Tensor, tap: _Tap, softness: float, occlusion: bool,
     need_grad: bool,
-) -> Tuple[Tensor, ...]:  # fmt: skip
+) -> Tuple[Tensor, Tensor, Optional[Tensor], Optional[Tensor], Optional[Tensor], Optional[Tensor]]:  # fmt: skip
     """(u, cov, sig, area, dreach_q, dreach_p) of one tap; u is the unnormalised weight. The reach derivatives follow
     torch.minimum's rule (half to each side on a tie)."""
     dreach_q = dreach_p = None
@@ -170,6 +170,8 @@ class _DiskDefocusTorch(torch.autograd.Function):
                     if dcov is not None:
                         grad_radius_own += dl_du * dcov
                     continue
+                # occlusion with need_radius: _tap_terms made area and the reach derivatives, and grad_radius_p exists
+                assert area is not None and dreach_q is not None and dreach_p is not None and grad_radius_p is not None
                 d_u = -2.0 * math.pi * r_q * area * area * cov  # through the area 1 / (1 + pi r_q^2)
                 if dcov is not None:
                     grad_radius_own += dl_du * dcov * dreach_p * area
@@ -178,6 +180,7 @@ class _DiskDefocusTorch(torch.autograd.Function):
         grad_image = None if grad_image_p is None else _replicate_pad_adjoint(grad_image_p, p)
         grad_radius = grad_radius_own
         if grad_radius_p is not None:
+            assert grad_radius is not None  # grad_radius_p is only made when need_radius
             grad_radius = grad_radius + _replicate_pad_adjoint(grad_radius_p, p)
         return grad_image, grad_radius, None, None, None, None
 

@@ -19,7 +19,7 @@ precision, no compiler) the two-step PyTorch twin runs.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import NamedTuple, Optional, Tuple, Union
+from typing import NamedTuple, Optional, Sequence, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -48,7 +48,7 @@ EXTENSION = CppExtension(
 grid_kernels_cpp_available = EXTENSION.available
 
 
-def grid_size(size: Tuple[int, int], factor: int) -> Tuple[int, int]:
+def grid_size(size: Sequence[int], factor: int) -> Tuple[int, int]:
     """(h, w) of the grid ``factor`` times coarser than an image of ``size`` (H, W): ``ceil(H / factor)``,
     ``ceil(W / factor)`` (the last cell may cover fewer pixels)."""
     return (-(-int(size[0]) // int(factor)), -(-int(size[1]) // int(factor)))
@@ -62,7 +62,7 @@ def pool_to_grid(x: Tensor, factor: int) -> Tensor:
     return F.avg_pool2d(x, factor, stride=factor, ceil_mode=True, count_include_pad=False)
 
 
-def upsample_grid(grid: Tensor, factor: int, size: Tuple[int, int]) -> Tensor:
+def upsample_grid(grid: Tensor, factor: int, size: Sequence[int]) -> Tensor:
     """Bilinear resampling of grid values to pixels: [B, C, h, w] -> [B, C, H, W] (``size`` = (H, W), at most
     (h * factor, w * factor)); grid cell centres sit at pixel ``factor * g + (factor - 1) / 2``."""
     if factor == 1:

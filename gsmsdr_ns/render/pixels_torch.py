@@ -87,7 +87,8 @@ def rasterize_to_pixels_torch(
     abs_buffer = None
     if absgrad and means2d.requires_grad and torch.is_grad_enabled():
         abs_buffer = torch.zeros(C * N, 2, device=device, dtype=means2d.dtype)
-        means2d.absgrad = abs_buffer.view(C, N, 2)  # filled in place by the hooks during backward
+        # filled in place by the hooks during backward; gsplat's extra attribute, unknown to torch's stubs
+        means2d.absgrad = abs_buffer.view(C, N, 2)  # type: ignore[attr-defined]
 
     offsets = isect_offsets.reshape(-1).tolist() + [flat_ids.numel()]
     th, tw = isect_offsets.shape[1:]

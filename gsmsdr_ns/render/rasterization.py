@@ -21,7 +21,7 @@ from gsmsdr_ns.render.tiles import isect_offset_encode, isect_tiles
 CpuBackend = Literal["auto", "cpp", "torch"]
 
 
-def resolve_cpu_backend(requested: CpuBackend = "auto") -> str:
+def resolve_cpu_backend(requested: CpuBackend = "auto") -> Literal["cpp", "torch"]:
     """Pick the CPU pixel kernel: "cpp" when it builds, else "torch" (one warning says why).
 
     Asking for "cpp" explicitly raises if the extension cannot be built.
@@ -176,14 +176,18 @@ def rasterization(
     # projection would move centres by pixels, and the C++ kernel needs one dtype)
     dtype = torch.float64 if means.dtype == torch.float64 else torch.float32
 
-    def cast(t: Optional[Tensor]) -> Optional[Tensor]:
-        return None if t is None else t.to(dtype)  # the same tensor when it already has that dtype
+    def cast(t: Tensor) -> Tensor:
+        return t.to(dtype)  # the same tensor when it already has that dtype
+
+    def cast_optional(t: Optional[Tensor]) -> Optional[Tensor]:
+        return None if t is None else t.to(dtype)
 
     with torch.autocast(device_type="cpu", enabled=False):
         return _rasterization_cpu(
-            cast(means), cast(quats), cast(scales), cast(opacities), cast(colors), cast(viewmats), cast(Ks), width,
-            height, near_plane, far_plane, radius_clip, eps2d, sh_degree, tile_size, cast(backgrounds), render_mode,
-            absgrad, rasterize_mode, cast(covars), cpu_backend, packed,
+            cast(means), cast_optional(quats), cast_optional(scales), cast(opacities), cast(colors), cast(viewmats),
+            cast(Ks), width, height, near_plane, far_plane, radius_clip, eps2d, sh_degree, tile_size,
+            cast_optional(backgrounds), render_mode, absgrad, rasterize_mode, cast_optional(covars), cpu_backend,
+            packed,
         )  # fmt: skip
 
 
@@ -214,6 +218,7 @@ def _rasterization_cpu(
     """The CPU path of `rasterization` (arguments checked, one floating dtype, autocast off)."""
     C, N = viewmats.shape[0], means.shape[0]
     if covars is None:
+        assert quats is not None and scales is not None  # _check_inputs checked their shapes when covars is None
         covars = covariance_3d(quats, scales)
     proj = project_gaussians(
         means, covars, viewmats, Ks, width, height, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane,
