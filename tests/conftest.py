@@ -145,6 +145,7 @@ def cpu_trainer_config(scene: Path, output_dir: Path, max_steps: int):
     periodic saves, evaluations or logs, nothing known about the images, the thin lens put before the field on every
     image (``thin_lens_for_unknown_kind``: the most expensive path, every part exercised), a lite blur field on from
     step 0, full resolution from the start."""
+    from gsmsdr_ns.blur.degradation_config import DegradationConfig
     from gsmsdr_ns.blur.field import BlurFieldConfig
     from gsmsdr_ns.plugin.method_config import gsmsdr_trainer_config
 
@@ -162,7 +163,8 @@ def cpu_trainer_config(scene: Path, output_dir: Path, max_steps: int):
     config.pipeline.datamanager.dataparser.estimate_degradations = False  # nothing known about any image
     model = config.pipeline.model
     model.num_downscales, model.warmup_length = 0, 2
-    model.blur_field = BlurFieldConfig(size="lite", kernel_sizes=(3, 5, 9), warmup=0, thin_lens_for_unknown_kind=True)
+    model.blur_field = BlurFieldConfig(size="lite", kernel_sizes=(3, 5, 9))
+    model.degradation_model = DegradationConfig(warmup=0, thin_lens_for_unknown_kind=True)
     return config
 
 

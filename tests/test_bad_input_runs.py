@@ -37,6 +37,7 @@ from PIL import Image
 
 import gsmsdr_ns.plugin  # noqa: F401  (checkpoint globals, exception hook)
 from gsmsdr_ns._cli import install_excepthook, run_entrypoint
+from gsmsdr_ns.blur.degradation_config import DegradationConfig
 from gsmsdr_ns.io.errors import DiskFullError, InputError
 from gsmsdr_ns.plugin import checkpoint_io as ckpt
 from gsmsdr_ns.plugin.checkpoint_compat import CheckpointMismatchError
@@ -345,27 +346,27 @@ def test_a_checkpoint_with_a_lens_for_unknown_blur_names_the_flag_to_load_it():
     """Before the thin lens became optional on images of unknown blur, such scenes' checkpoints carry one."""
 
     def nothing_known(lens: bool):  # 4 training views without records, with or without the lens on them
-        blur = dataclasses.replace(gsmsdr_trainer_config().pipeline.model.blur_field, thin_lens_for_unknown_kind=lens)
-        return _model(gsmsdr_trainer_config, degradation="auto", blur_field=blur)
+        options = DegradationConfig(thin_lens_for_unknown_kind=lens)
+        return _model(gsmsdr_trainer_config, degradation="auto", degradation_model=options)
 
     with_lens, without = nothing_known(lens=True), nothing_known(lens=False)
     with pytest.raises(CheckpointMismatchError,
-                       match=r"has a thin lens .*blur-field.thin-lens-for-unknown-kind True\)"):  # fmt: skip
+                       match=r"has a thin lens .*degradation-model.thin-lens-for-unknown-kind True\)"):  # fmt: skip
         without.load_state_dict(with_lens.state_dict())
-    with pytest.raises(CheckpointMismatchError, match=r"has no thin lens, but .*blur-field.thin-lens False"):
+    with pytest.raises(CheckpointMismatchError, match=r"has no thin lens, but .*degradation-model.thin-lens False"):
         with_lens.load_state_dict(without.state_dict())
     without.load_state_dict(nothing_known(lens=False).state_dict())  # the same config loads
 
 
 def test_a_checkpoint_with_or_without_camera_shake_paths_names_the_flag_to_load_it():
     def motion_model(shake: bool):  # 4 motion-blurred training views, with or without rotation paths
-        blur = dataclasses.replace(gsmsdr_trainer_config().pipeline.model.blur_field, camera_shake=shake)
-        return _model(gsmsdr_trainer_config, degradation="motion", blur_field=blur)
+        options = DegradationConfig(camera_shake=shake)
+        return _model(gsmsdr_trainer_config, degradation="motion", degradation_model=options)
 
     with_paths, without = motion_model(shake=True), motion_model(shake=False)
-    with pytest.raises(CheckpointMismatchError, match=r"has camera shake paths .*blur-field.camera-shake True\)"):
+    with pytest.raises(CheckpointMismatchError, match=r"has camera shake paths .*degradation-model.camera-shake True\)"):
         without.load_state_dict(with_paths.state_dict())
-    with pytest.raises(CheckpointMismatchError, match=r"has no camera shake paths, .*blur-field.camera-shake False"):
+    with pytest.raises(CheckpointMismatchError, match=r"has no camera shake paths, .*degradation-model.camera-shake False"):
         with_paths.load_state_dict(without.state_dict())
     with_paths.load_state_dict(motion_model(shake=True).state_dict())  # the same config loads
 

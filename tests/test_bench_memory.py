@@ -19,7 +19,7 @@ def test_sizes_and_overrides_parse_and_bad_ones_name_the_fix():
     assert parse_overrides(["mode=view", "size=lite", "kernel_sizes=[5, 9]", "gaka=false", "switch_steps=None"]) == {
         "mode": "view", "size": "lite", "kernel_sizes": (5, 9), "gaka": False, "switch_steps": None,
     }  # fmt: skip
-    with pytest.raises(ValueError, match="no field 'feature_dim_typo'; fields: mode, size"):
+    with pytest.raises(ValueError, match="no blur-field or degradation option 'feature_dim_typo'; options: mode, size"):
         parse_overrides(["feature_dim_typo=2"])
     with pytest.raises(ValueError, match="expected key=value"):
         parse_overrides(["mode"])
@@ -61,7 +61,7 @@ def test_the_command_measures_in_fresh_processes_and_merges_its_results(tmp_path
         assert row["method"] in ("VmHWM after clear_refs", "ru_maxrss")
     markdown = (out / "results.md").read_text()
     assert "gsmsdr-bench memory --lens fused --sizes 40x24" in markdown and markdown.count("| 40x24 |") == 3
-    with pytest.raises(SystemExit, match="no field 'nope'"):
+    with pytest.raises(SystemExit, match="no blur-field or degradation option 'nope'"):
         entrypoint(["memory", "--set", "nope=1", "--out", str(out)])
 
 

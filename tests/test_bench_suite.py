@@ -147,12 +147,13 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert (model("plain-poses").camera_optimizer.mode, model("plain-poses").camera_optimizer_views) == ("SO3xR3",
                                                                                                          "all")
     assert model("plain-poses").degradation == "sharp"
-    assert model("full-uncentred").blur_field.kernel_centre_weight == 0 < model("full").blur_field.kernel_centre_weight
-    assert model("full-lens-unknown").blur_field.thin_lens_for_unknown_kind
-    assert model("full-margin").blur_field.render_margin and not model("full").blur_field.render_margin
-    assert model("full-shake").blur_field.camera_shake and not model("full").blur_field.camera_shake
-    assert not model("full").blur_field.thin_lens_for_unknown_kind
-    paper_loss, full = model("full-paper-loss").blur_field, model("full").blur_field
+    options = {name: model(name).degradation_model for name in METHODS if METHODS[name].has_blur_field}
+    assert options["full-uncentred"].kernel_centre_weight == 0 < options["full"].kernel_centre_weight
+    assert options["full-lens-unknown"].thin_lens_for_unknown_kind
+    assert options["full-margin"].render_margin and not options["full"].render_margin
+    assert options["full-shake"].camera_shake and not options["full"].camera_shake
+    assert not options["full"].thin_lens_for_unknown_kind
+    paper_loss, full = options["full-paper-loss"], options["full"]
     assert paper_loss.deconvolved_loss_weight == 0 < full.deconvolved_loss_weight
 
 

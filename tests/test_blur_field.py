@@ -13,6 +13,8 @@ import torch
 import torch.nn.functional as F
 from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 
+from gsmsdr_ns.blur.degradation_config import DegradationConfig
+from gsmsdr_ns.blur.degradation_model import DegradationModel
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo, kernel_prior_logits, kernel_upsample_matrix
 from gsmsdr_ns.blur.losses import DegradationAux, DegradationLossWeights, degradation_losses, mask_regulariser
@@ -176,7 +178,7 @@ def test_gradients_reach_every_active_parameter_and_the_render(mode):
         weights, mask = f(render, depth, view_ids, scale)
         out = f.degrade(render, weights, mask)
         target = torch.rand_like(out)
-        loss = (out - target).abs().mean() + mask_regulariser(mask, f.config.mask_reg_weight)
+        loss = (out - target).abs().mean() + mask_regulariser(mask, DegradationConfig().mask_reg_weight)
         loss.backward()
         active = {id(p) for p in f.parameters_for_scale(scale)}
         for name, p in f.named_parameters():
@@ -240,8 +242,9 @@ def test_msd_only_and_re_only_modes():
     assert re.scales == (1,)
     assert num_params(re) == num_params(field(hpko=False))  # RE-only is Table 6's "-HPKO"
     assert num_params(re) < num_params(full)
-    assert re.config.make_scheduler().scale_for_step(0) == ScaleInfo(1, 17, 1)
-    assert msd.config.make_scheduler().scale_for_step(0) == ScaleInfo(3, 5, 4)
+    motion = [DegradationProfile(motion=True)]
+    assert DegradationModel(motion, re.config).hpko.scale_for_step(0) == ScaleInfo(1, 17, 1)
+    assert DegradationModel(motion, msd.config).hpko.scale_for_step(0) == ScaleInfo(3, 5, 4)
 
 
 def test_lite_size_is_smaller_and_explicit_widths_win():
@@ -253,12 +256,12 @@ def test_lite_size_is_smaller_and_explicit_widths_win():
 
 
 def test_shared_dict_hooks():
-    f = field(mask_reg_weight=0.001)
+    f = field()
     groups = f.get_param_groups({"means": []})
-    assert set(groups) == {"means", "blur_field", "blur_view_kernels", "blur_defocus"}
-    owned = [p for g in ("blur_field", "blur_view_kernels", "blur_defocus") for p in groups[g]]
+    assert set(groups) == {"means", "blur_field", "blur_view_kernels"}  # the thin lens is the degradation model's
+    owned = [p for g in ("blur_field", "blur_view_kernels") for p in groups[g]]
     assert len(owned) == len({id(p) for p in owned}) == len(list(f.parameters()))  # each parameter in one group
-    paper = field(mask_reg_weight=0.001, view_kernels=False, thin_lens=False).get_param_groups({})
+    paper = field(view_kernels=False).get_param_groups({})
     assert set(paper) == {"blur_field"}
     mask = torch.full((4, 4, 1), 0.5)
     image = torch.zeros(4, 4, 3)
@@ -297,7 +300,7 @@ def test_kernel_centre_regulariser():
     torch.testing.assert_close(losses["blur_kernel_centre"], torch.tensor(2.0))  # 0.5 * 2^2
     assert degradation_losses(aux, image, None, DegradationLossWeights(kernel_centre=0.0)) == {}  # 0: off
     with pytest.raises(ValueError, match="kernel_centre_weight"):
-        BlurFieldConfig(kernel_centre_weight=-1.0)
+        DegradationConfig(kernel_centre_weight=-1.0)
 
 
 # ------------------------------------------------------------------------------------------------ pure helpers
@@ -368,10 +371,10 @@ def test_for_schedule_keeps_the_scales_the_resolution_schedule_visits():
     config = BlurFieldConfig()
     assert config.for_schedule(2).kernel_sizes == (5, 9, 17) and config.for_schedule(5).kernel_sizes == (5, 9, 17)
     assert config.for_schedule(1).kernel_sizes == (9, 17) and config.for_schedule(0).kernel_sizes == (17,)
-    sched = config.for_schedule(1).make_scheduler(num_downscales=1, resolution_schedule=100)
+    model = DegradationModel([DegradationProfile(motion=True)], config, num_downscales=1, resolution_schedule=100)
+    sched = model.hpko
     assert sched.scale_for_step(0) == ScaleInfo(2, 9, 2) and sched.scale_for_step(100) == ScaleInfo(1, 17, 1)
-    explicit = BlurFieldConfig(switch_steps=(10, 20))
-    assert explicit.for_schedule(0) is explicit  # explicit switch steps keep every scale
+    assert config.for_schedule(0, switch_steps=(10, 20)) is config  # explicit switch steps keep every scale
     assert BlurFieldConfig(hpko=False).for_schedule(1).kernel_sizes == (5, 9, 17)  # one scale (K_1) anyway
 
 
@@ -438,8 +441,10 @@ def test_scheduler_switch_steps_and_warmup():
     assert off.scale_for_downscale(4) == ScaleInfo(1, 17, 1)
 
 
-def test_config_builds_a_scheduler_tied_to_the_model_schedule():
-    sched = BlurFieldConfig(warmup=100).make_scheduler(num_downscales=1, resolution_schedule=500)
+def test_the_degradation_model_builds_a_scheduler_tied_to_the_model_schedule():
+    options = DegradationConfig(warmup=100)
+    model = DegradationModel([DegradationProfile(motion=True)], BlurFieldConfig(), options, 1, resolution_schedule=500)
+    sched = model.hpko
     assert sched.warmup == 100 and sched.scale_for_step(0) == ScaleInfo(2, 9, 2)
     assert sched.scale_for_step(500) == ScaleInfo(1, 17, 1)
 
@@ -583,7 +588,7 @@ def test_view_kernels_give_each_view_its_own_kernel():
 
 
 def test_view_kernels_train_only_the_drawn_views_in_their_own_group():
-    f = field(view_kernels=True, thin_lens=False)  # the thin lens has its own group (tests/test_thin_lens.py)
+    f = field(view_kernels=True)
     groups = f.get_param_groups({})
     assert set(groups) == {"blur_field", "blur_view_kernels"}
     assert len(groups["blur_field"]) + len(groups["blur_view_kernels"]) == len(list(f.parameters()))
@@ -604,7 +609,7 @@ def test_view_kernels_train_only_the_drawn_views_in_their_own_group():
 def test_view_mode_has_no_feature_network_and_blurs_by_one_kernel_per_view():
     """Mode "view": only per-view tables (all in the blur_view_kernels group), no MAAN; its expanded kernels are
     applied as a convolution that equals the per-pixel application of the same kernel everywhere."""
-    f = field(mode="view", thin_lens=False)
+    f = field(mode="view")
     assert f.mcf is None and f.mca is None and not f.uses_depth
     assert set(f.get_param_groups({})) == {"blur_view_kernels"}
     assert num_params(f) == sum(NUM_VIEWS * k * k for k in (5, 9, 17))  # kernels only: the mask is 1

@@ -26,14 +26,14 @@ from nerfstudio.engine.trainer import Trainer
 from test_plugin_model import look_from, make_camera, seed_cloud
 
 import gsmsdr_ns.plugin  # noqa: F401  (checkpoint globals for torch.load)
-from gsmsdr_ns.blur import BlurField, BlurFieldConfig, ResolutionLossModel
+from gsmsdr_ns.blur import BlurField, BlurFieldConfig, DegradationConfig, ResolutionLossModel
 from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
 from gsmsdr_ns.plugin.method_config import gsmsdr_trainer_config
 from gsmsdr_ns.plugin.model import GSMSDRModelConfig, GSMSDRWarning
 
 SHARP_TRAIN_VIEWS = ("frame_00002.png", "frame_00005.png", "frame_00009.png")  # training views (hold=8)
 CLI_STEPS = 20
-BLUR_FLAGS = ("--pipeline.model.blur-field.warmup", "4")
+BLUR_FLAGS = ("--pipeline.model.degradation-model.warmup", "4")
 
 
 def make_variant(out: Path, variant: str) -> Path:
@@ -73,7 +73,7 @@ class InProcessTrainer:
         config.pipeline.datamanager.data = data
         model = config.pipeline.model
         model.num_downscales, model.warmup_length, model.refine_every = 0, 10, 10
-        model.blur_field = dataclasses.replace(model.blur_field, warmup=warmup)
+        model.degradation_model = dataclasses.replace(model.degradation_model, warmup=warmup)
         for name, value in model_overrides.items():
             setattr(model, name, value)
         trainer = Trainer(config)
@@ -234,7 +234,7 @@ def test_modules_follow_the_profiles(degradation, degradations, field, depth, re
     assert (model.degradation.blur_field is not None) == field
     assert (model.degradation.blur_field is not None and model.degradation.blur_field.uses_depth) == depth
     assert (model.degradation.resolution_model is not None) == resolution
-    assert (model.degradation.blur_field is not None and model.degradation.blur_field.thin_lens is not None) == lens
+    assert (model.degradation.thin_lens is not None) == lens
     groups = model.get_param_groups()
     assert ("blur_field" in groups) == field and ("resolution_model" in groups) == resolution
     assert ("blur_defocus" in groups) == lens
@@ -253,9 +253,9 @@ def test_a_blur_of_unknown_kind_gets_the_field_and_the_lens_only_when_asked():
         ([{**r, "effects": {"defocus": dict(estimated)}} for r in unknown_kind], False, True),  # estimated: defocus
         ([{**r, "effects": {"motion": {}, "defocus": {}}} for r in unknown_kind], False, True),  # both, recorded
     ):
-        model = build({"degradations": degradations}, blur_field=BlurFieldConfig(thin_lens_for_unknown_kind=ask))
+        model = build({"degradations": degradations}, degradation_model=DegradationConfig(thin_lens_for_unknown_kind=ask))
         assert model.degradation.blur_field is not None and model.degradation.blur_field.uses_depth
-        assert (model.degradation.blur_field.thin_lens is not None) == lens, (degradations[0]["effects"], ask)
+        assert (model.degradation.thin_lens is not None) == lens, (degradations[0]["effects"], ask)
         plan = model.degradation.plan(0, 1, step=10**6)  # past the field's warm-up
         assert plan.thin_lens == lens and plan.blur_scale is not None
 
@@ -265,10 +265,11 @@ def test_thin_lens_blurs_defocused_images_only_and_learns(mode):
     """Views 0-1 defocused, 2-3 motion-blurred: the lens runs (and gets gradients) for views 0-1 only, before the
     field, and its depth-driven blur is part of the simulated image."""
     metadata = {"degradations": records("defocus", 2) + records("motion", 2)}
-    model = build(metadata, blur_field=BlurFieldConfig(mode=mode, warmup=0, thin_lens_initial_aperture=20.0))
+    model = build(metadata, blur_field=BlurFieldConfig(mode=mode),
+                  degradation_model=DegradationConfig(warmup=0, thin_lens_initial_aperture=20.0))  # fmt: skip
     model.train()
     model.optimizers = None
-    lens = model.degradation.blur_field.thin_lens
+    lens = model.degradation.thin_lens
     lens_calls: List[tuple] = []
     handle = lens.register_forward_hook(lambda _m, inputs, _o: lens_calls.append(tuple(inputs[1].tolist())))
     for view in (0, 2):
@@ -297,15 +298,15 @@ def test_defocus_only_images_skip_the_field_unless_asked(defocus_field):
     both = {"split": "train", "degraded": True, "effects": {"motion": {}, "defocus": {}}}
     unknown = {"split": "train"}
     metadata = {"degradations": records("defocus", 1) + [both, unknown] + records("sharp", 1)}
-    config = BlurFieldConfig(warmup=0, thin_lens_initial_aperture=20.0, defocus_field=defocus_field)
-    model = build(metadata, blur_field=config)
+    config = DegradationConfig(warmup=0, thin_lens_initial_aperture=20.0, defocus_field=defocus_field)
+    model = build(metadata, degradation_model=config)
     model.train()
     model.optimizers = None
     field_calls: List[tuple] = []
     lens_calls: List[int] = []
     handles = [
         count_calls(model.degradation.blur_field, field_calls),
-        model.degradation.blur_field.thin_lens.register_forward_hook(lambda _m, i, _o: lens_calls.append(int(i[1]))),
+        model.degradation.thin_lens.register_forward_hook(lambda _m, i, _o: lens_calls.append(int(i[1]))),
     ]
     for view in range(4):
         camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)
@@ -330,7 +331,7 @@ def test_hpko_scale_follows_the_current_render_downscale():
     """num_downscales 2, resolution_schedule 4: 1/4 -> 1/2 -> full resolution; K = 5 -> 9 -> 17 in step. The scale
     is a function of the step being rendered (no training callback or running state carries it)."""
     motion = {"degradations": records("motion")}
-    model = build(motion, num_downscales=2, resolution_schedule=4, blur_field=BlurFieldConfig(warmup=0))
+    model = build(motion, num_downscales=2, resolution_schedule=4, degradation_model=DegradationConfig(warmup=0))
     model.train()
     model.optimizers = None
     callbacks = model.get_training_callbacks(TrainingCallbackAttributes(None, None, None, None))
@@ -364,9 +365,10 @@ def test_blurred_views_render_a_margin_the_blur_reads_then_crop_it(margin):
     """With ``render_margin`` a blurred training view is rendered K // 2 pixels beyond every border and cropped after
     blurring: a kernel that shifts the image fills the last columns with what lies just outside the frame (the
     render of a camera 2 * 2 pixels wider and taller), not with the replicated border."""
-    field = BlurFieldConfig(mode="view", kernel_sizes=(5,), warmup=0, progressive=False, linear_light=False,
-                            render_margin=margin)  # fmt: skip
-    model = build({"degradations": records("motion")}, num_downscales=0, background_color="white", blur_field=field)
+    field = BlurFieldConfig(mode="view", kernel_sizes=(5,), progressive=False)
+    options = DegradationConfig(warmup=0, linear_light=False, render_margin=margin)
+    model = build({"degradations": records("motion")}, num_downscales=0, background_color="white", blur_field=field,
+                  degradation_model=options)  # fmt: skip
     _shift_left_two_pixels(model)
     c2w = look_from([0.8, 0.3, 0.35])  # close: the Gaussians fill the frame and run past its borders
     camera = make_camera(c2w, width=64, height=48)
@@ -398,7 +400,7 @@ def test_camera_shake_runs_on_views_that_may_be_shaken_and_learns():
     recs = records("motion", 1) + records("defocus", 1) + records("sharp", 1)
     recs.append({"split": "train", "degraded": True, "source": "estimated",
                  "effects": {"motion": dict(estimated), "defocus": dict(estimated)}})  # fmt: skip
-    model = build({"degradations": recs}, num_downscales=0, blur_field=BlurFieldConfig(camera_shake=True, warmup=0))
+    model = build({"degradations": recs}, num_downscales=0, degradation_model=DegradationConfig(camera_shake=True, warmup=0))
     shake = model.degradation.camera_shake
     assert shake is not None and model.get_param_groups()["blur_shake"] == [shake.coefficients]
     assert [model.degradation.plan(i, 1, step=10).shake for i in range(4)] == [True, False, False, True]
@@ -412,13 +414,13 @@ def test_camera_shake_runs_on_views_that_may_be_shaken_and_learns():
     grad = shake.coefficients.grad
     assert grad is not None and float(grad[3].abs().sum()) > 0 and torch.equal(grad[:3], torch.zeros_like(grad[:3]))
     assert build({"degradations": recs}).degradation.camera_shake is None  # off unless asked
-    no_motion = build({"degradations": records("defocus")}, blur_field=BlurFieldConfig(camera_shake=True))
+    no_motion = build({"degradations": records("defocus")}, degradation_model=DegradationConfig(camera_shake=True))
     assert no_motion.degradation.camera_shake is None and "blur_shake" not in no_motion.get_param_groups()
 
 
 def test_warm_up_follows_the_step_being_rendered():
     """The blur field is skipped until the model's step reaches the warm-up."""
-    model = build({"degradations": records("motion")}, blur_field=BlurFieldConfig(warmup=3))
+    model = build({"degradations": records("motion")}, degradation_model=DegradationConfig(warmup=3))
     model.train()
     model.optimizers = None
     camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)
@@ -588,7 +590,7 @@ def test_ns_train_on_a_defocus_scene_trains_the_thin_lens(scenes, tmp_path):
     run_dir = tmp_path / "outputs" / "defocus" / "gsmsdr-lite" / "lens"
     checkpoint = torch.load(run_dir / "nerfstudio_models" / f"step-{29:09d}.ckpt", map_location="cpu")
     state = checkpoint["pipeline"]
-    prefix = "_model.degradation.blur_field.thin_lens."
+    prefix = "_model.degradation.thin_lens."
     assert {k[len(prefix):] for k in state if k.startswith(prefix)} == {
         "log_aperture", "view_log_aperture", "inverse_focus", "focus_initialised"}  # fmt: skip
     assert "blur_defocus" in checkpoint["optimizers"]
@@ -605,7 +607,7 @@ def test_densification_gradient_of_blurred_views_is_scaled_when_asked():
 
     def grad2d(scale: float, view: int) -> torch.Tensor:
         torch.manual_seed(0)
-        model = build(metadata, n=2, blur_field=BlurFieldConfig(warmup=0), degraded_densify_grad_scale=scale)
+        model = build(metadata, n=2, degradation_model=DegradationConfig(warmup=0), degraded_densify_grad_scale=scale)
         model.train()
         model.optimizers = None  # no refinement at step 1: the statistics are only accumulated
         camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)
@@ -635,8 +637,10 @@ def test_the_deconvolved_loss_weighs_a_blurred_views_residual_by_its_mean_kernel
 
     def loss_terms(view: int, weight: float):
         torch.manual_seed(0)
-        field = BlurFieldConfig(warmup=0, mode=mode, deconvolved_loss_weight=weight)
-        model = build(metadata, n=2, blur_field=field, background_color="black", num_downscales=0)
+        field = BlurFieldConfig(mode=mode)
+        options = DegradationConfig(warmup=0, deconvolved_loss_weight=weight)
+        model = build(metadata, n=2, blur_field=field, degradation_model=options, background_color="black",
+                      num_downscales=0)  # fmt: skip
         model.train()
         model.optimizers = None  # no densification step here
         model.step = 1

@@ -18,7 +18,7 @@ def _settings(config) -> dict:
     names = ("num_downscales", "resolution_schedule", "stop_split_at", "refine_every", "warmup_length",
              "stop_screen_size_at", "reset_alpha_every", "densify_grad_thresh", "sh_degree_interval")  # fmt: skip
     out = {name: getattr(model, name) for name in names}
-    out["blur_warmup"] = model.blur_field.warmup
+    out["blur_warmup"] = model.degradation_model.warmup
     out["max_num_iterations"] = config.max_num_iterations
     out["steps_per_save"] = config.steps_per_save
     for group in ("means", "camera_opt", "bilateral_grid"):

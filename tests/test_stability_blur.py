@@ -18,6 +18,7 @@ from stability_common import (  # noqa: F401  (single_thread: autouse fixture)
     single_thread,
 )
 
+from gsmsdr_ns.blur.degradation_config import DegradationConfig
 from gsmsdr_ns.blur.losses import mask_regulariser
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels, apply_pixel_kernels_unfold
@@ -94,7 +95,7 @@ def test_blur_field_saturated_heads_on_tiny_and_constant_images(mode):
                     field.zero_grad(set_to_none=True)
                     kernels, mask = field(render, depth, torch.tensor([1]), scale)
                     degraded = BlurField.degrade(render, kernels, mask, linear_light=True)  # black: sRGB curve at 0
-                    loss = (degraded - 0.5).abs().mean() + mask_regulariser(mask, field.config.mask_reg_weight)
+                    loss = (degraded - 0.5).abs().mean() + mask_regulariser(mask, DegradationConfig().mask_reg_weight)
                     loss.backward()
                     what = f"{mode} scale {scale} mask {mask_sign:+g} {H}x{W} {kind}"
                     assert all_finite(kernels) and all_finite(mask) and all_finite(degraded), what

@@ -12,6 +12,7 @@ import torch
 
 from gsmsdr_ns.blur.defocus import ThinLensDefocus, lens_window, thin_lens_radius
 from gsmsdr_ns.ops.disk_kernels import occluding_disk_kernels, soft_disk_kernels
+from gsmsdr_ns.blur.degradation_config import DegradationConfig
 from gsmsdr_ns.blur.degradation_model import DegradationModel
 from gsmsdr_ns.blur.profile import DegradationProfile
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
@@ -197,16 +198,16 @@ def test_a_lens_is_recovered_from_a_defocused_photo():
     assert float(error) < 0.1, (float(error), float(true_radius.mean()))
 
 
-def test_blur_field_builds_a_lens_only_when_asked():
+def test_the_degradation_model_builds_a_lens_only_when_asked():
     config = BlurFieldConfig(mode="view", kernel_sizes=(5, 9))
-    assert config.setup(num_train_views=3).thin_lens is not None
-    assert config.setup(num_train_views=3, use_thin_lens=False).thin_lens is None
-    off = BlurFieldConfig(mode="view", kernel_sizes=(5, 9), thin_lens=False)
-    assert off.setup(num_train_views=3).thin_lens is None
-    groups = config.setup(num_train_views=3).get_param_groups({})
+    defocus, motion = [DegradationProfile(defocus=True)] * 3, [DegradationProfile(motion=True)] * 3
+    assert DegradationModel(defocus, config).thin_lens is not None
+    assert DegradationModel(motion, config).thin_lens is None  # no image can be defocused
+    assert DegradationModel(defocus, config, DegradationConfig(thin_lens=False)).thin_lens is None
+    groups = DegradationModel(defocus, config).get_param_groups({})
     assert set(groups) == {"blur_view_kernels", "blur_defocus"} and len(groups["blur_defocus"]) == 3
     with pytest.raises(ValueError, match="thin_lens_initial_aperture"):
-        BlurFieldConfig(thin_lens_initial_aperture=0.0)
+        DegradationConfig(thin_lens_initial_aperture=0.0)
 
 
 def test_a_non_finite_depth_gives_nan_kernels_and_leaves_the_focus_alone():
@@ -270,7 +271,7 @@ def test_focus_initialisation_on_a_device_matches_the_cpu_rule_without_reading_a
 
 def test_the_degradation_model_blurs_through_the_fused_lens_as_through_its_kernels():
     model = DegradationModel([DegradationProfile(defocus=True)], BlurFieldConfig(mode="view", kernel_sizes=(5, 9)))
-    lens = model.blur_field.thin_lens
+    lens = model.thin_lens
     with torch.no_grad():
         lens.log_aperture.fill_(math.log(4.0))
     render, depth, ids = torch.rand(1, 3, 20, 24), _depth_ramp(20, 24), torch.tensor([0])

@@ -12,7 +12,7 @@ from test_plugin_blur import build, records
 from test_plugin_model import look_from, make_camera
 
 from gsmsdr_ns import timing_hooks
-from gsmsdr_ns.blur import BlurFieldConfig
+from gsmsdr_ns.blur import BlurFieldConfig, DegradationConfig
 
 
 class ListRecorder:
@@ -60,7 +60,8 @@ def test_only_one_recorder_at_a_time():
 def test_a_defocus_and_motion_step_reports_every_stage():
     both = {"split": "train", "degraded": True, "effects": {"motion": {}, "defocus": {}}}
     metadata = {"degradations": [both] + records("mixres", 2)[1:] + records("sharp", 1)}
-    model = build(metadata, n=3, num_downscales=0, blur_field=BlurFieldConfig(warmup=0, mode="view"))
+    model = build(metadata, n=3, num_downscales=0, blur_field=BlurFieldConfig(mode="view"),
+                  degradation_model=DegradationConfig(warmup=0))  # fmt: skip
     model.train()
     model.optimizers = None
     recorder = ListRecorder()

@@ -19,13 +19,13 @@ RECORD_VERSION = 1
 
 def preset_fingerprint(method: MethodSpec) -> str:
     """The resolved model and optimizer settings of ``method`` (its preset with its changes applied), so a record
-    made before a preset default changed is rerun. Paths are left out, and so are the blur field's settings for
-    methods that never build it (plain, sharp)."""
+    made before a preset default changed is rerun. Paths are left out, and so are the blur field's and degradation
+    models' settings for methods that never build them (plain, sharp)."""
     config = method.make_config(Path("data"), Path("outputs"))
     model, optimizers = config.pipeline.model, dict(config.optimizers)
     if not method.has_blur_field:
         model = copy.copy(model)
-        model.blur_field = None
+        model.blur_field = model.degradation_model = None
         optimizers = {k: v for k, v in optimizers.items() if not k.startswith("blur_")}
     return repr(model) + repr(sorted(optimizers.items()))
 
@@ -37,7 +37,7 @@ def fingerprint(suite: Suite, key: RunKey, estimate: bool = True) -> str:
     payload = {
         "version": RECORD_VERSION,
         "scene": suite.scene(key.scene).fingerprint(),
-        "method": {"base": method.base, "blur_field": method.blur_field, "sharp_data": method.sharp_data},
+        "method": {"base": method.base, "blur_field": method.overrides, "sharp_data": method.sharp_data},
         **_training_settings(suite, key, estimate),
     }
     if suite.align_poses:  # only then, so records of suites without alignment keep their fingerprint

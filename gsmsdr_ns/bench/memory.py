@@ -72,15 +72,16 @@ def _literal(text: str) -> Any:
 
 
 def parse_overrides(items: Sequence[str]) -> Dict[str, Any]:
-    """``["key=value", ...]`` -> ``{key: value}`` for ``BlurFieldConfig`` (values as Python literals; bare words are
-    strings, true / false / none as booleans and None, lists become tuples).
+    """``["key=value", ...]`` -> ``{key: value}`` for ``BlurFieldConfig`` or ``DegradationConfig`` (values as Python
+    literals; bare words are strings, true / false / none as booleans and None, lists become tuples).
 
     Raises:
-        ValueError: an item without "=", or a key that is not a ``BlurFieldConfig`` field (the message lists them).
+        ValueError: an item without "=", or a key that is a field of neither config (the message lists them).
     """
+    from gsmsdr_ns.blur.degradation_config import DegradationConfig
     from gsmsdr_ns.blur.field import BlurFieldConfig
 
-    names = [f.name for f in dataclasses.fields(BlurFieldConfig)]
+    names = [f.name for config in (BlurFieldConfig, DegradationConfig) for f in dataclasses.fields(config)]
     out: Dict[str, Any] = {}
     for item in items:
         key, sep, value = item.partition("=")
@@ -88,7 +89,7 @@ def parse_overrides(items: Sequence[str]) -> Dict[str, Any]:
         if not sep or not key:
             raise ValueError(f"--set: expected key=value, got {item!r}")
         if key not in names:
-            raise ValueError(f"--set {item!r}: BlurFieldConfig has no field {key!r}; fields: {', '.join(names)}")
+            raise ValueError(f"--set {item!r}: no blur-field or degradation option {key!r}; options: {', '.join(names)}")
         out[key] = _literal(value.strip())
     return out
 
@@ -104,26 +105,29 @@ def describe_field(overrides: Mapping[str, Any], field: bool = True) -> str:
 
 
 def _build(spec: Mapping[str, Any]):
-    """(field or None, lens, scale) for the child's spec; the lens's window is the full K at any image size."""
+    """(field or None, lens, scale, linear_light) for the child's spec; the lens's window is the full K at any image
+    size."""
     import math
 
     import torch
 
+    from gsmsdr_ns.bench.methods import apply_overrides
     from gsmsdr_ns.blur.defocus import ThinLensDefocus
+    from gsmsdr_ns.blur.degradation_config import DegradationConfig
     from gsmsdr_ns.blur.field import BlurFieldConfig
 
-    config = dataclasses.replace(BlurFieldConfig(), **spec["overrides"])
+    config, degradation = apply_overrides(BlurFieldConfig(), DegradationConfig(), dict(spec["overrides"]))
     K = int(spec["kernel_size"])
-    field = config.setup(num_train_views=1, use_depth=True, use_thin_lens=True)
+    field = config.setup(num_train_views=1, use_depth=True)
     sizes = {field.kernel_size(s): s for s in field.scales}
     if K not in sizes:
         raise ValueError(f"kernel_size {K} is none of the field's scales' kernel sizes {sorted(sizes)}")
-    lens = field.thin_lens if field.thin_lens is not None else ThinLensDefocus(1)  # thin_lens=False: a default lens
+    lens = ThinLensDefocus(1, degradation.thin_lens_initial_aperture, occlusion=degradation.thin_lens_occlusion)
     with torch.no_grad():
         lens.log_aperture.fill_(math.log(4.0 * K))  # radii up to ~K: the full window everywhere
         lens.inverse_focus.fill_(0.5)
         lens.focus_initialised.fill_(True)
-    return (field if spec.get("field", True) else None), lens, sizes[K]
+    return (field if spec.get("field", True) else None), lens, sizes[K], degradation.linear_light
 
 
 def _inputs(width: int, height: int, seed: int):
@@ -137,14 +141,13 @@ def _inputs(width: int, height: int, seed: int):
     return render, depth, grad
 
 
-def _step(field, lens, scale: int, lens_impl: str, K: int, render, depth, grad) -> Tuple[float, float]:
+def _step(field, lens, scale: int, linear_light: bool, lens_impl: str, K: int, render, depth, grad) -> Tuple[float, float]:
     """Forward (lens, then field) and backward; (forward s, backward s)."""
     import torch
 
     from gsmsdr_ns.blur.field import BlurField
 
     ids = torch.tensor([0])
-    linear_light = True if field is None else field.config.linear_light
     t0 = time.perf_counter()
     if lens_impl == "fused":
         image = lens.blur(render, depth, ids, K, 1.0, linear_light)
@@ -174,9 +177,9 @@ def run_child(spec: Mapping[str, Any]) -> Dict[str, Any]:
     torch.manual_seed(int(spec.get("seed", 0)))
     result: Dict[str, Any] = {"status": "ok"}
     try:
-        field, lens, scale = _build(spec)
+        field, lens, scale, linear_light = _build(spec)
         K = int(spec["kernel_size"])
-        _step(field, lens, scale, spec["lens"], K, *_inputs(48, 32, 1))  # warm-up
+        _step(field, lens, scale, linear_light, spec["lens"], K, *_inputs(48, 32, 1))  # warm-up
         field_params = [] if field is None else list(field.parameters())
         for p in field_params + list(lens.parameters()):
             p.grad = None
@@ -184,7 +187,7 @@ def run_child(spec: Mapping[str, Any]) -> Dict[str, Any]:
         peak = PeakMemory()
         peak.reset()  # VmHWM back to the current RSS where /proc allows it
         vm_before = proc_status_kib("VmSize")  # VmSize counts to the limit
-        forward_s, backward_s = _step(field, lens, scale, spec["lens"], K, render, depth, grad)
+        forward_s, backward_s = _step(field, lens, scale, linear_light, spec["lens"], K, render, depth, grad)
         method = "VmHWM after clear_refs" if peak.span_reset else "ru_maxrss"
         result.update(extra_peak_mb=peak.extra_rss_mb(), forward_s=forward_s, backward_s=backward_s,
                       setup_rss_mb=peak.baseline_mb, setup_vm_mb=vm_before / 1024.0, method=method)  # fmt: skip

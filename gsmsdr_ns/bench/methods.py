@@ -1,7 +1,7 @@
 """The bench's one method registry: what each suite method (a table row) trains.
 
-Every method is a preset of ``gsmsdr_ns.plugin.method_config`` (its *base*) with some ``BlurFieldConfig`` fields
-replaced:
+Every method is a preset of ``gsmsdr_ns.plugin.method_config`` (its *base*) with some ``BlurFieldConfig`` or
+``DegradationConfig`` fields replaced:
 
 * base ``plain``: the ``gsmsdr`` preset with ``degradation sharp``, i.e. plain splatfacto Gaussians fitted straight
   to the degraded training images (no blur field, no resolution model);
@@ -65,8 +65,9 @@ class MethodSpec:
     """Row label in the tables."""
     base: str
     """Base preset: plain / sharp (gsmsdr preset with degradation sharp), gsmsdr, gsmsdr-lite."""
-    blur_field: Tuple[Tuple[str, Any], ...] = ()
-    """``BlurFieldConfig`` fields replaced on the preset's blur field."""
+    overrides: Tuple[Tuple[str, Any], ...] = ()
+    """Fields replaced on the preset's ``BlurFieldConfig`` (the field's architecture) or ``DegradationConfig``
+    (everything else), each where it is defined."""
     sharp_data: bool = False
     """Train on the sharp twin of the scene (the upper bound) instead of its degraded images."""
     description: str = ""
@@ -86,8 +87,10 @@ class MethodSpec:
         """The TrainerConfig of this method on ``data`` (schedules not yet shortened)."""
         config = base_config(self.base, data, output_dir)
         model = config.pipeline.model
-        if self.blur_field:
-            model.blur_field = dataclasses.replace(model.blur_field, **dict(self.blur_field))
+        if self.overrides:
+            model.blur_field, model.degradation_model = apply_overrides(
+                model.blur_field, model.degradation_model, dict(self.overrides)
+            )
         if self.pose_refinement is not None:
             set_pose_refinement(model, self.pose_refinement)
         return config
@@ -104,12 +107,26 @@ class MethodSpec:
             return None
         from gsmsdr_ns.blur.field import BlurFieldConfig
 
-        mods = BlurFieldConfig(**dict(self.blur_field)).modules
+        field_options = {k: v for k, v in self.overrides if k in {f.name for f in dataclasses.fields(BlurFieldConfig)}}
+        mods = BlurFieldConfig(**field_options).modules
         return dict(GAKA=mods.gaka, SAFM=mods.safm, MCA=mods.mca, RGBD=mods.rgbd, HPKO=mods.hpko)
 
 
-def _method(name: str, label: str, base: str, description: str, sharp_data: bool = False, **blur) -> MethodSpec:
-    return MethodSpec(name, label, base, tuple(sorted(blur.items())), sharp_data, description)
+def apply_overrides(blur_field, degradation, overrides: Dict[str, Any]):
+    """(blur_field, degradation) with each of ``overrides`` replaced where it is defined: a ``BlurFieldConfig`` field
+    on ``blur_field``, a ``DegradationConfig`` field on ``degradation``. An option of neither raises ValueError."""
+    field_names = {f.name for f in dataclasses.fields(blur_field)}
+    degradation_names = {f.name for f in dataclasses.fields(degradation)}
+    unknown = sorted(set(overrides) - field_names - degradation_names)
+    if unknown:
+        raise ValueError(f"not an option of BlurFieldConfig or DegradationConfig: {', '.join(unknown)}")
+    on_field = {k: v for k, v in overrides.items() if k in field_names}
+    on_degradation = {k: v for k, v in overrides.items() if k in degradation_names}
+    return dataclasses.replace(blur_field, **on_field), dataclasses.replace(degradation, **on_degradation)
+
+
+def _method(name: str, label: str, base: str, description: str, sharp_data: bool = False, **options) -> MethodSpec:
+    return MethodSpec(name, label, base, tuple(sorted(options.items())), sharp_data, description)
 
 
 METHODS: Dict[str, MethodSpec] = {

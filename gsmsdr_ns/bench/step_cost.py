@@ -63,7 +63,7 @@ def _config(spec: StepCostSpec, work_dir: Path):
     config.pipeline.datamanager.dataparser.estimate_degradations = spec.estimate
     model = config.pipeline.model
     model.num_downscales = 0  # full resolution (and the HPKO's full-size kernels) from the first step
-    model.blur_field = dataclasses.replace(model.blur_field, warmup=0)
+    model.degradation_model = dataclasses.replace(model.degradation_model, warmup=0)
     return config
 
 

@@ -12,5 +12,27 @@ from gsmsdr_ns.blur.profile import (
     training_profiles,
 )
 from gsmsdr_ns.blur.defocus import ThinLensDefocus, thin_lens_radius
+from gsmsdr_ns.blur.degradation_config import DegradationConfig
 from gsmsdr_ns.blur.degradation_model import DegradationModel, DegradationPlan
 from gsmsdr_ns.blur.shake import CameraShake, apply_camera_shake, rotation_homographies
+
+__all__ = [
+    "BlurField",
+    "BlurFieldConfig",
+    "CameraShake",
+    "DegradationConfig",
+    "DegradationModel",
+    "DegradationPlan",
+    "DegradationProfile",
+    "HPKOHeads",
+    "HPKOScheduler",
+    "ResolutionLossModel",
+    "ScaleInfo",
+    "ThinLensDefocus",
+    "apply_camera_shake",
+    "describe_profiles",
+    "effective_factor",
+    "rotation_homographies",
+    "thin_lens_radius",
+    "training_profiles",
+]

@@ -1,18 +1,19 @@
 """Everything that turns a sharp render into the degraded photo a training image is: :class:`DegradationModel`.
 
-It owns one :class:`~gsmsdr_ns.blur.profile.DegradationProfile` per training image and only the parts those
-profiles need: the blur field (MAAN + HPKO, with its thin lens for defocus) and its HPKO scheduler, the optional
-camera-shake paths (``BlurFieldConfig.camera_shake``), and the resolution-loss model. A sharp scene builds none of
-them. One training step enters it three times, each a function of its arguments (no state carried between them):
+It owns one :class:`~gsmsdr_ns.blur.profile.DegradationProfile` per training image and, as siblings, only the parts
+those profiles need: the camera-shake paths (``DegradationConfig.camera_shake``), the thin lens for defocus, the
+blur field (MAAN + HPKO) with its HPKO scheduler, and the resolution-loss model. A sharp scene builds none of
+them. The field's architecture is its :class:`~gsmsdr_ns.blur.field.BlurFieldConfig`; everything else is the
+:class:`~gsmsdr_ns.blur.degradation_config.DegradationConfig`. One training step enters it three times, each a function of its arguments (no state carried between them):
 :meth:`DegradationModel.plan` says what the image needs at this step and resolution, :meth:`DegradationModel.forward`
 passes the render through it and returns the degraded image with one :class:`~gsmsdr_ns.blur.losses.DegradationAux`,
 and :meth:`DegradationModel.losses` turns that into every degradation loss term. The viewer's blur outputs come from
 :meth:`DegradationModel.preview`; it and ``forward`` run "the thin lens, then the field" through one method,
 :meth:`DegradationModel._lens_then_field`.
 
-Checkpoint keys: ``blur_field.*``, ``camera_shake.*``, ``resolution_model.*`` and ``train_camera_centres`` under
-this module's prefix; :func:`remap_legacy_keys` moves the keys of checkpoints written before this module existed
-(the same names one level up) under it.
+Checkpoint keys: ``blur_field.*``, ``thin_lens.*``, ``camera_shake.*``, ``resolution_model.*`` and
+``train_camera_centres`` under this module's prefix; :func:`remap_legacy_keys` moves the keys of older checkpoints
+(the same names one level up, or the lens under the field) to them.
 """
 
 from __future__ import annotations
@@ -24,22 +25,24 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from gsmsdr_ns.blur.defocus import ThinLensDefocus
+from gsmsdr_ns.blur.degradation_config import DegradationConfig
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig, blend
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo
-from gsmsdr_ns.blur.losses import DegradationAux, DegradationLossWeights, degradation_losses
+from gsmsdr_ns.blur.losses import DegradationAux, degradation_losses, kernel_centres, mean_blend_kernel
 from gsmsdr_ns.blur.maan import host_checked_view_ids
 from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, describe_profiles, effective_factor
 from gsmsdr_ns.blur.shake import CameraShake
-from gsmsdr_ns.ops.deconvolved_loss import blend_with_identity, mean_kernel
 from gsmsdr_ns.ops.grid_kernels import GridKernels, as_dense
-from gsmsdr_ns.ops.pixel_kernels import kernel_centroids
 from gsmsdr_ns.timing_hooks import timed
 
 __all__ = ["DegradationModel", "DegradationPlan", "crop_margin", "LEGACY_KEY_PREFIXES", "remap_legacy_keys"]
 
 LEGACY_KEY_PREFIXES = ("blur_field.", "resolution_model.", "train_camera_centres")
 """State-dict keys the degradation modules had when they were attributes of the nerfstudio model itself."""
+LEGACY_LENS_PREFIX = "blur_field.thin_lens."
+"""Where the thin lens's keys were while it was a child of the blur field (now ``thin_lens.``)."""
 
 
 class DegradationPlan(NamedTuple):
@@ -91,32 +94,10 @@ def crop_margin(x: Tensor, margin: int, dims: Tuple[int, int] = (-2, -1)) -> Ten
     return x.narrow(dims[1], margin, x.shape[dims[1]] - 2 * margin)
 
 
-def _lens_for(profile: DegradationProfile, config: BlurFieldConfig) -> bool:
+def _lens_for(profile: DegradationProfile, config: DegradationConfig) -> bool:
     """Whether the thin lens blurs this image before the field: known defocus, or (when the config asks) a blur of
     unknown kind."""
     return profile.known_defocus or (profile.defocus and config.thin_lens_for_unknown_kind)
-
-
-def _mean_blend_kernel(kernels: Union[Tensor, GridKernels], mask: Tensor) -> Tensor:
-    """[B, K, K] detached mean over the image of the field's blend ``m * k + (1 - m) * identity`` (kernels
-    [B, K*K, H, W], expanded over the pixels in mode view, or on the field's coarse grid; mask [B, 1, H, W])."""
-    with torch.no_grad():
-        if isinstance(kernels, GridKernels):
-            weights = kernels.weights
-        elif kernels.stride(-1) == 0 and kernels.stride(-2) == 0:
-            weights = kernels[:, :, :1, :1]  # one kernel per image: no need to average H x W copies
-        else:
-            weights = kernels
-        return blend_with_identity(mean_kernel(weights.float()), mask.float().mean(dim=(1, 2, 3)))
-
-
-def _kernel_centroids(kernels: Union[Tensor, GridKernels]) -> Tensor:
-    """[B, 2, h, w] centres of mass of the field's kernels, on its coarse grid when it predicts one (the dense
-    kernels are that grid resampled bilinearly, and a centre of mass is linear in the weights)."""
-    weights = kernels.weights if isinstance(kernels, GridKernels) else kernels
-    if weights.stride(-1) == 0 and weights.stride(-2) == 0:  # one kernel per image, expanded over the pixels
-        weights = weights[..., :1, :1]
-    return kernel_centroids(weights)
 
 
 class LensThenField(NamedTuple):
@@ -130,15 +111,19 @@ class LensThenField(NamedTuple):
 
 
 def remap_legacy_keys(state_dict: Mapping[str, Any], prefix: str) -> Mapping[str, Any]:
-    """A checkpoint written before :class:`DegradationModel` existed (keys ``blur_field.*``, ``resolution_model.*``,
-    ``train_camera_centres`` one level up) with those keys moved under ``prefix`` (e.g. ``"degradation."``);
-    ``state_dict`` itself when it has none. The new dict keeps torch's ``_metadata`` (module versions), remapped."""
-    if not any(key.startswith(LEGACY_KEY_PREFIXES) for key in state_dict):
-        return state_dict
+    """An older checkpoint with its degradation keys where this module keeps them (``prefix``, e.g.
+    ``"degradation."``): keys written before :class:`DegradationModel` existed (``blur_field.*``,
+    ``resolution_model.*``, ``train_camera_centres`` one level up) move under ``prefix``, and the thin lens's keys
+    under the field (``<prefix>blur_field.thin_lens.*``) become ``<prefix>thin_lens.*``. ``state_dict`` itself when
+    it has neither. The new dict keeps torch's ``_metadata`` (module versions), remapped."""
     legacy = tuple(p.rstrip(".") for p in LEGACY_KEY_PREFIXES)
+    old_lens = prefix + LEGACY_LENS_PREFIX.rstrip(".")
+    if not any(key.startswith(legacy) or key.startswith(old_lens) for key in state_dict):
+        return state_dict
 
     def moved(key: str) -> str:
-        return prefix + key if key.startswith(legacy) else key
+        key = prefix + key if key.startswith(legacy) else key
+        return prefix + "thin_lens" + key[len(old_lens):] if key.startswith(old_lens) else key
 
     out: Any = OrderedDict((moved(key), value) for key, value in state_dict.items())
     metadata = getattr(state_dict, "_metadata", None)
@@ -162,14 +147,15 @@ class DegradationModel(nn.Module):
 
     Args:
         profiles: one per training image, in the training split's order.
-        field_config: the blur field's config (restricted to the scales ``num_downscales`` visits).
+        field_config: the blur field's architecture (restricted to the scales ``num_downscales`` visits).
+        config: everything else: lens, shake, schedule, margin, resolution model, loss weights.
         num_downscales: splatfacto's ``num_downscales`` (training starts at 1 / 2^num_downscales).
         resolution_schedule: splatfacto's ``resolution_schedule`` (steps between resolution doublings).
-        resolution_kernel_size: size of the resolution-loss model's residual kernel.
         preview_max_side: the viewer outputs' working resolution (see :meth:`preview`; 0: full resolution).
 
-    Attributes (None when no image needs them): ``blur_field`` (:class:`BlurField`), ``hpko``
-    (:class:`HPKOScheduler`), ``train_camera_centres`` (persistent [N, 3] buffer, NaN until :meth:`set_train_camera_centres`: the viewer
+    Attributes (None when no image needs them): ``camera_shake`` (:class:`CameraShake`), ``thin_lens``
+    (:class:`ThinLensDefocus`), ``blur_field`` (:class:`BlurField`), ``hpko`` (:class:`HPKOScheduler`),
+    ``train_camera_centres`` (persistent [N, 3] buffer, NaN until :meth:`set_train_camera_centres`: the viewer
     outputs use the nearest training view), ``resolution_model`` (:class:`ResolutionLossModel`). The blur field is
     initialised under ``torch.random.fork_rng``: building it leaves the random stream training draws from as it
     would be without it.
@@ -181,39 +167,48 @@ class DegradationModel(nn.Module):
         self,
         profiles: Sequence[DegradationProfile],
         field_config: BlurFieldConfig,
+        config: Optional[DegradationConfig] = None,
         num_downscales: int = 2,
         resolution_schedule: int = 3000,
-        resolution_kernel_size: int = 3,
         preview_max_side: int = 128,
     ) -> None:
         super().__init__()
         self.profiles: List[DegradationProfile] = list(profiles)
+        self.config = config = DegradationConfig() if config is None else config
         self.preview_max_side = int(preview_max_side)
         self.blur_field: Optional[BlurField] = None
+        self.thin_lens: Optional[ThinLensDefocus] = None
         self.hpko: Optional[HPKOScheduler] = None
         self.resolution_model: Optional[ResolutionLossModel] = None
         self._view_id_tensors: Dict[Tuple[int, torch.device], Tensor] = {}
         num_views = len(self.profiles)
         if any(p.needs_blur_field for p in self.profiles):
-            field_config = field_config.for_schedule(num_downscales)
+            field_config = field_config.for_schedule(num_downscales, config.switch_steps)
             with torch.random.fork_rng(devices=[]):
                 self.blur_field = field_config.setup(
-                    num_train_views=num_views,
-                    use_depth=any(p.needs_depth for p in self.profiles),
-                    use_thin_lens=any(_lens_for(p, field_config) for p in self.profiles),
+                    num_train_views=num_views, use_depth=any(p.needs_depth for p in self.profiles)
                 )
-            self.hpko = field_config.make_scheduler(
-                num_downscales=num_downscales, resolution_schedule=resolution_schedule
+            if config.thin_lens and any(_lens_for(p, config) for p in self.profiles):
+                self.thin_lens = ThinLensDefocus(
+                    num_views, config.thin_lens_initial_aperture, occlusion=config.thin_lens_occlusion
+                )
+            self.hpko = HPKOScheduler(
+                kernel_sizes=tuple(field_config.kernel_sizes),
+                num_downscales=num_downscales,
+                resolution_schedule=resolution_schedule,
+                switch_steps=config.switch_steps,
+                warmup=config.warmup,
+                enabled=field_config.modules.hpko,
             )
             self.register_buffer("train_camera_centres", torch.full((num_views, 3), float("nan")))
         self.camera_shake: Optional[CameraShake] = None
-        if self.blur_field is not None and field_config.camera_shake and any(p.motion for p in self.profiles):
-            self.camera_shake = CameraShake(num_views, field_config.shake_samples)
+        if self.blur_field is not None and config.camera_shake and any(p.motion for p in self.profiles):
+            self.camera_shake = CameraShake(num_views, config.shake_samples)
         mixres = [p for p in self.profiles if p.needs_resolution_model]
         if mixres:
             upsample = Counter(p.mixres_upsample for p in mixres).most_common(1)[0][0]
             self.resolution_model = ResolutionLossModel(
-                num_views=num_views, kernel_size=resolution_kernel_size, upsample=upsample
+                num_views=num_views, kernel_size=config.resolution_kernel_size, upsample=upsample
             )
 
     # -- description and state ------------------------------------------------------------------------------
@@ -224,7 +219,7 @@ class DegradationModel(nn.Module):
         if self.blur_field is not None:
             assert self.hpko is not None
             depth = "RGB-D" if self.blur_field.uses_depth else "RGB"
-            lens = ", thin lens for defocus" if self.blur_field.thin_lens is not None else ""
+            lens = ", thin lens for defocus" if self.thin_lens is not None else ""
             parts.append(f"blur field ({self.blur_field.config.mode}, {depth}, kernels {self.hpko.kernel_sizes}{lens})")
         if self.resolution_model is not None:
             parts.append("resolution-loss model")
@@ -253,6 +248,8 @@ class DegradationModel(nn.Module):
         ``resolution_model`` for the modules that exist."""
         if self.blur_field is not None:
             self.blur_field.get_param_groups(groups)
+        if self.thin_lens is not None:
+            groups["blur_defocus"] = list(self.thin_lens.parameters())
         if self.camera_shake is not None:
             groups["blur_shake"] = list(self.camera_shake.parameters())
         if self.resolution_model is not None:
@@ -263,14 +260,7 @@ class DegradationModel(nn.Module):
         """Every degradation loss term of a step (:func:`~gsmsdr_ns.blur.losses.degradation_losses`): ``aux`` and
         ``degraded`` [H, W, 3] from :meth:`forward`, ``target`` [H, W, 3] the training image (needed only when
         ``aux.kernel_mean`` is set)."""
-        if self.blur_field is None:
-            return {}
-        config = self.blur_field.config
-        weights = DegradationLossWeights(
-            config.mask_reg_weight, config.kernel_centre_weight, config.deconvolved_loss_weight,
-            config.deconvolved_loss_eps,
-        )  # fmt: skip
-        return degradation_losses(aux, degraded, target, weights)
+        return degradation_losses(aux, degraded, target, self.config.loss_weights)
 
     # -- training -------------------------------------------------------------------------------------------
 
@@ -291,9 +281,9 @@ class DegradationModel(nn.Module):
         field = self.blur_field
         return (
             field is not None
-            and field.thin_lens is not None
+            and self.thin_lens is not None
             and self.profiles[view_id].defocus_only
-            and not field.config.defocus_field
+            and not self.config.defocus_field
         )
 
     def plan(self, view_id: Optional[int], render_downscale: int, step: int) -> DegradationPlan:
@@ -319,14 +309,14 @@ class DegradationModel(nn.Module):
             factor = effective_factor(profile.mixres_factor, render_downscale)
         if field is None or blur_scale is None:
             return DegradationPlan(view_id, resolution_factor=factor, render_downscale=render_downscale, has_model=True)
-        config = field.config
+        config = self.config
         runs_field = not self.lens_alone(view_id)
         return DegradationPlan(
             view_id=view_id,
             blur_scale=blur_scale,
             blur_uses_depth=field.uses_depth,
             resolution_factor=factor,
-            thin_lens=field.thin_lens is not None and _lens_for(profile, config),
+            thin_lens=self.thin_lens is not None and _lens_for(profile, config),
             render_downscale=render_downscale,
             blur_field=runs_field,
             shake=self.camera_shake is not None and profile.motion,
@@ -359,7 +349,7 @@ class DegradationModel(nn.Module):
         if plan.shake:
             assert self.camera_shake is not None and self.blur_field is not None and K is not None
             centred = not self.profiles[plan.view_id].exact_pose
-            linear_light = self.blur_field.config.linear_light
+            linear_light = self.config.linear_light
             image = timed("kernels", self.camera_shake, image, K, view_ids, centred, linear_light)
         if plan.blur_scale is not None:
             assert self.blur_field is not None
@@ -377,15 +367,15 @@ class DegradationModel(nn.Module):
             image = stages.image
             if stages.kernels is not None:
                 assert stages.mask is not None
-                blurred = timed("kernels", BlurField.blur, image, stages.kernels, self.blur_field.config.linear_light)
+                blurred = timed("kernels", BlurField.blur, image, stages.kernels, self.config.linear_light)
                 image = blend(stages.mask, blurred, image)
                 aux = DegradationAux(
                     sharp,
                     mask=_hwc(crop_margin(stages.mask, plan.margin)),
                     learnt_mask=self.blur_field.config.mode != "view",
-                    kernel_mean=_mean_blend_kernel(stages.kernels, stages.mask) if plan.deconvolved_loss else None,
+                    kernel_mean=mean_blend_kernel(stages.kernels, stages.mask) if plan.deconvolved_loss else None,
                     kernel_centroids=(
-                        timed("blur_field", _kernel_centroids, stages.kernels) if plan.kernel_centre_loss else None
+                        timed("blur_field", kernel_centres, stages.kernels) if plan.kernel_centre_loss else None
                     ),
                     kernel_size=plan.blur_scale.kernel_size,
                 )
@@ -416,9 +406,9 @@ class DegradationModel(nn.Module):
         assert self.blur_field is not None
         lens_kernels = None
         if lens:
-            assert self.blur_field.thin_lens is not None and depth is not None
-            thin_lens = self.blur_field.thin_lens
-            linear_light = self.blur_field.config.linear_light
+            assert self.thin_lens is not None and depth is not None
+            thin_lens = self.thin_lens
+            linear_light = self.config.linear_light
             if keep_lens_kernels:
                 lens_kernels = timed("blur_field", thin_lens, depth, view_ids, lens_window, lens_pixel_scale)
                 image = timed("kernels", BlurField.blur, image, lens_kernels, linear_light)
@@ -462,7 +452,7 @@ class DegradationModel(nn.Module):
         low = image if d == 1 else F.interpolate(image, size=small, mode="area")
         view_id = nearest_view(self.train_camera_centres, camera_centre)
         view_ids = self.view_ids(view_id, image.device)
-        lens = self.blur_field.thin_lens is not None and _lens_for(self.profiles[view_id], self.blur_field.config)
+        lens = self.thin_lens is not None and _lens_for(self.profiles[view_id], self.config)
         lens_alone = self.lens_alone(view_id)
         field_depth = self.blur_field.uses_depth and not lens_alone
         low_depth = None
@@ -493,7 +483,7 @@ class DegradationModel(nn.Module):
         if lens_extent is not None:  # RMS radii of successive blurs add in quadrature
             extent = torch.sqrt(extent**2 + lens_extent**2)
         coarse = coarsen_kernels(kernels, d // info.downsample)
-        blurred = BlurField.blur(stages.image, coarse, self.blur_field.config.linear_light)
+        blurred = BlurField.blur(stages.image, coarse, self.config.linear_light)
         mask_full = enlarge(stages.mask)
         base = image if not lens else enlarge(stages.image)  # what the field blends with: the render or its lens blur
         degraded = blend(mask_full, enlarge(blurred), base).clamp(0.0, 1.0)

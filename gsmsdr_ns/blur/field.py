@@ -28,9 +28,8 @@ from typing import Any, Dict, List, Literal, NamedTuple, Optional, Tuple, Union
 from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 from torch import Tensor, nn
 
-from .defocus import ThinLensDefocus
 from gsmsdr_ns.ops.grid_kernels import GridKernels, apply_grid_kernels, pool_to_grid, upsample_grid
-from .hpko import HPKOHeads, HPKOScheduler, ViewKernels, check_kernel_sizes, hpko_scales
+from .hpko import HPKOHeads, ViewKernels, check_kernel_sizes, hpko_scales
 from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels, apply_pixel_kernels
 from .maan import MCA, BAGSFeatures, ContextualFeatures, RGBDFeatures, check_bchw, check_view_ids
 
@@ -113,34 +112,11 @@ class BlurFieldConfig:
     mask_init: float = 0.9
     """Initial blending mask m (the coarsest head's bias), in (0, 1): high, since the field only runs on images
     believed blurred; the regulariser lowers it where blur does not matter. Mode view has no mask (m = 1)."""
-    linear_light: bool = True
-    """Apply the kernels to linear light (the sRGB-encoded render decoded, blurred, re-encoded): a sensor
-    integrates irradiance over the exposure and the aperture before the camera's tone curve. False: blur the
-    encoded values (BAGS)."""
     view_kernels: bool = True
     """Add a learnable per-view kernel (one K_s x K_s logit table per training view and scale) to the predicted
     per-pixel kernels: camera shake blurs a whole image along one path, which a per-view kernel captures with few
     parameters; the heads model how the blur varies across the image. Trained in the ``blur_view_kernels``
     optimizer group."""
-    thin_lens: bool = True
-    """Images known to be defocused are first blurred by a learnt thin lens: per-pixel disk kernels whose radius
-    follows the rendered depth, ``aperture * |1/d - 1/d_focus|``, with one aperture and focus per view
-    (:class:`~gsmsdr_ns.blur.defocus.ThinLensDefocus`, optimizer group ``blur_defocus``). Motion-blurred and
-    mixed-resolution images never pay for it."""
-    thin_lens_for_unknown_kind: bool = False
-    """Also put the thin lens before the field on images blurred by an unknown kind of blur (no record, or an
-    estimate that could not tell motion from defocus). Off: the field alone models their blur, whatever it is."""
-    defocus_field: bool = False
-    """Also run the field (per-pixel and per-view kernels, mask) after the thin lens on images known to be defocused
-    only. False: the lens alone models them (the field would compete with it for the same blur); images with motion
-    blur, or nothing known, always run the field. Ignored without ``thin_lens``."""
-    thin_lens_occlusion: bool = True
-    """Each neighbour spreads its own disk and an in-focus foreground hides the blurred background behind it
-    (:func:`~gsmsdr_ns.blur.defocus.occluding_disk_kernels`); False: every pixel gathers its own disk whatever the
-    neighbours' depth (:func:`~gsmsdr_ns.blur.defocus.soft_disk_kernels`)."""
-    thin_lens_initial_aperture: float = 1.0
-    """Starting aperture: CoC radius in pixels per scene unit of inverse depth (small: the untrained lens barely
-    blurs)."""
     pixel_kernels: bool = True
     """Per-pixel kernel heads (M_blur^s). False: the kernel is the prior plus the per-view kernel only (needs
     ``view_kernels``); the mask heads stay."""
@@ -153,38 +129,6 @@ class BlurFieldConfig:
     detach_inputs: bool = True
     """Feed detached render and depth to the feature network (BAGS); gradients reach the Gaussians through the
     kernel application only."""
-    mask_reg_weight: float = 0.001
-    """Weight of the mask regulariser mean(m) (BAGS: 0.001)."""
-    kernel_centre_weight: float = 1.0
-    """Weight of the kernel-centre regulariser: mean squared distance (pixels) of each kernel's centre of mass from
-    its pixel, on images whose pose was estimated from the photo (structure-from-motion puts a blurred photo's pose
-    near the centre of its blur; a kernel free to shift lets the sharp scene drift off that pose by a different
-    amount in every view). Images whose records give the exact mid-exposure pose of a simulated shake (generated
-    and ``gsmsdr-degrade`` scenes) are not centred. 0: off."""
-    deconvolved_loss_weight: float = 10.0
-    """Weight of the deconvolved residual loss (``ops/deconvolved_loss.py``) on images the field blurs: the mean
-    squared residual weighted by the inverse of the image's mean kernel (loss ``blur_deconvolved``), so the detail the
-    blur attenuates reaches the Gaussians at about full strength instead of attenuated twice. 0: off (the paper's
-    loss alone)."""
-    deconvolved_loss_eps: float = 0.01
-    """Wiener regulariser of that weight: frequencies the blur keeps below sqrt(eps) are amplified at most
-    eps^-1/2 times (10x), so noise and frequencies the blur removed are not blown up."""
-    camera_shake: bool = False
-    """Images that may be motion-blurred (records name motion, or the kind of blur is unknown) are first blurred
-    along a learnt camera rotation path (:class:`~gsmsdr_ns.blur.shake.CameraShake`, optimizer group
-    ``blur_shake``), then by the field: a turning camera blurs every pixel along its own path, which roll makes
-    vary across the image. Off by default: on the real-photo suite's shaken fern it did not beat the field alone
-    (docs/design.md)."""
-    shake_samples: int = 9
-    """Time samples of the exposure the render is warped to along the rotation path."""
-    render_margin: bool = False
-    """Render the current kernel's half-width beyond every border of a blurred image and crop after blurring: a
-    photo's border pixels are blurred with what lay just outside the frame, which replicate padding cannot know.
-    Off by default: on the real-photo suite's shaken fern it moved PSNR within the seed noise (docs/design.md)."""
-    warmup: int = 250
-    """The blur field is skipped for the first ``warmup`` steps (BAGS: 250)."""
-    switch_steps: Optional[Tuple[int, ...]] = None
-    """Steps where HPKO goes one scale finer; None: follow the model's resolution schedule (recommended)."""
 
     def __post_init__(self) -> None:
         if self.mode not in ("full", "msd_only", "re_only", "view"):
@@ -197,14 +141,6 @@ class BlurFieldConfig:
             raise ValueError(f"invalid blur field widths {dims}")
         if not (self.view_kernels or self.pixel_kernels):
             raise ValueError("a blur field needs pixel_kernels, view_kernels or both")
-        if not self.thin_lens_initial_aperture > 0:
-            raise ValueError(f"thin_lens_initial_aperture must be > 0, got {self.thin_lens_initial_aperture}")
-        if not self.deconvolved_loss_weight >= 0:
-            raise ValueError(f"deconvolved_loss_weight must be >= 0, got {self.deconvolved_loss_weight}")
-        if not self.deconvolved_loss_eps > 0:
-            raise ValueError(f"deconvolved_loss_eps must be > 0, got {self.deconvolved_loss_eps}")
-        if not self.kernel_centre_weight >= 0:
-            raise ValueError(f"kernel_centre_weight must be >= 0, got {self.kernel_centre_weight}")
         if not self.kernel_prior_sigma > 0:
             raise ValueError(f"kernel_prior_sigma must be > 0, got {self.kernel_prior_sigma}")
         if int(self.feature_downsample) != self.feature_downsample or self.feature_downsample < 1:
@@ -228,28 +164,17 @@ class BlurFieldConfig:
             return BlurFieldModules(True, self.gaka, self.safm, self.mca, self.rgbd, False)
         return BlurFieldModules(True, self.gaka, self.safm, self.mca, self.rgbd, self.hpko)
 
-    def for_schedule(self, num_downscales: int) -> "BlurFieldConfig":
+    def for_schedule(self, num_downscales: int, switch_steps: Optional[Tuple[int, ...]] = None) -> "BlurFieldConfig":
         """This config with only the HPKO scales a resolution schedule starting at 1 / 2^num_downscales visits.
 
         A scale coarser than the first training resolution would never be trained, yet with ``progressive`` heads
         its untrained kernel would be where the finer ones start; dropping it keeps every trained scale starting
         from the prior at its own resolution. Unchanged with explicit ``switch_steps`` or without HPKO.
         """
-        if self.switch_steps is not None or not self.modules.hpko:
+        if switch_steps is not None or not self.modules.hpko:
             return self
         keep = max(1, min(len(self.kernel_sizes), int(num_downscales) + 1))
         return dataclasses.replace(self, kernel_sizes=tuple(self.kernel_sizes)[-keep:])
-
-    def make_scheduler(self, num_downscales: int = 2, resolution_schedule: int = 3000) -> HPKOScheduler:
-        """The HPKO scheduler for a model rendering with splatfacto's ``num_downscales`` / ``resolution_schedule``."""
-        return HPKOScheduler(
-            kernel_sizes=tuple(self.kernel_sizes),
-            num_downscales=num_downscales,
-            resolution_schedule=resolution_schedule,
-            switch_steps=self.switch_steps,
-            warmup=self.warmup,
-            enabled=self.modules.hpko,
-        )
 
     def setup(self, **kwargs: Any) -> "BlurField":
         """Build the field; kwargs are run-time values (``num_train_views``, optional ``use_depth``)."""
@@ -270,8 +195,6 @@ class BlurField(nn.Module):
         num_train_views: rows of the view embedding; ``view_ids`` index training views in [0, num_train_views).
         use_depth: False forces an RGB-only feature network (e.g. the degradation profile says depth does not
             matter); None follows ``config.rgbd``. Depth is used only when both allow it.
-        use_thin_lens: False: no training image can be defocused, build no thin lens (``config.thin_lens`` must
-            allow it too).
     """
 
     def __init__(
@@ -279,7 +202,6 @@ class BlurField(nn.Module):
         config: BlurFieldConfig,
         num_train_views: int,
         use_depth: Optional[bool] = None,
-        use_thin_lens: bool = True,
     ) -> None:
         super().__init__()
         self.config = config
@@ -290,11 +212,6 @@ class BlurField(nn.Module):
         self.mcf: Optional[ContextualFeatures] = None
         self.mca: Optional[MCA] = None
         self.heads: Union[HPKOHeads, ViewKernels]
-        self.thin_lens: Optional[ThinLensDefocus] = None
-        if config.thin_lens and use_thin_lens:
-            self.thin_lens = ThinLensDefocus(
-                num_train_views, config.thin_lens_initial_aperture, occlusion=config.thin_lens_occlusion
-            )
         if config.mode == "view":
             self.heads = ViewKernels(
                 num_train_views,
@@ -431,17 +348,14 @@ class BlurField(nn.Module):
     def get_param_groups(self, param_groups: Dict[str, List[nn.Parameter]]) -> Dict[str, List[nn.Parameter]]:
         """Add the ``blur_field`` group (the feature network, MCA and per-pixel heads) and, with per-view kernels,
         ``blur_view_kernels`` (each view's table gets a gradient only when that view is drawn: it needs a higher
-        learning rate) and, with a thin lens, ``blur_defocus``."""
+        learning rate)."""
         view = self.heads.per_view_parameters()
-        lens = list(self.thin_lens.parameters()) if self.thin_lens is not None else []
-        own_group = {id(p) for p in view + lens}
+        own_group = {id(p) for p in view}
         shared = [p for p in self.parameters() if id(p) not in own_group]
         if shared:  # none in mode "view"
             param_groups["blur_field"] = shared
         if view:
             param_groups["blur_view_kernels"] = view
-        if lens:
-            param_groups["blur_defocus"] = lens
         return param_groups
 
     def parameters_for_scale(self, scale: int) -> List[nn.Parameter]:

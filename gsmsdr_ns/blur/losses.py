@@ -8,13 +8,24 @@ taken, the deconvolved residual when the image's mean kernel was.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, NamedTuple, Optional
+from typing import Dict, NamedTuple, Optional, Union
 
+import torch
 from torch import Tensor
 
-from gsmsdr_ns.ops.deconvolved_loss import deconvolved_residual
+from gsmsdr_ns.ops.deconvolved_loss import blend_with_identity, deconvolved_residual, mean_kernel
+from gsmsdr_ns.ops.grid_kernels import GridKernels
+from gsmsdr_ns.ops.pixel_kernels import kernel_centroids
 
-__all__ = ["DegradationAux", "DegradationLossWeights", "degradation_losses", "mask_regulariser", "kernel_centre_regulariser"]
+__all__ = [
+    "DegradationAux",
+    "DegradationLossWeights",
+    "degradation_losses",
+    "mask_regulariser",
+    "kernel_centre_regulariser",
+    "mean_blend_kernel",
+    "kernel_centres",
+]
 
 
 class DegradationAux(NamedTuple):
@@ -47,6 +58,28 @@ class DegradationLossWeights:
     """Deconvolved residual (:mod:`gsmsdr_ns.ops.deconvolved_loss`)."""
     deconvolved_eps: float = 0.01
     """Wiener regulariser of the deconvolved residual's weight."""
+
+
+def mean_blend_kernel(kernels: Union[Tensor, GridKernels], mask: Tensor) -> Tensor:
+    """[B, K, K] detached mean over the image of the field's blend ``m * k + (1 - m) * identity`` (kernels
+    [B, K*K, H, W], expanded over the pixels in mode view, or on the field's coarse grid; mask [B, 1, H, W])."""
+    with torch.no_grad():
+        if isinstance(kernels, GridKernels):
+            weights = kernels.weights
+        elif kernels.stride(-1) == 0 and kernels.stride(-2) == 0:
+            weights = kernels[:, :, :1, :1]  # one kernel per image: no need to average H x W copies
+        else:
+            weights = kernels
+        return blend_with_identity(mean_kernel(weights.float()), mask.float().mean(dim=(1, 2, 3)))
+
+
+def kernel_centres(kernels: Union[Tensor, GridKernels]) -> Tensor:
+    """[B, 2, h, w] centres of mass of the field's kernels, on its coarse grid when it predicts one (the dense
+    kernels are that grid resampled bilinearly, and a centre of mass is linear in the weights)."""
+    weights = kernels.weights if isinstance(kernels, GridKernels) else kernels
+    if weights.stride(-1) == 0 and weights.stride(-2) == 0:  # one kernel per image, expanded over the pixels
+        weights = weights[..., :1, :1]
+    return kernel_centroids(weights)
 
 
 def mask_regulariser(mask: Tensor, weight: float) -> Tensor:

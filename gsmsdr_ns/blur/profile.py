@@ -73,7 +73,7 @@ class DegradationProfile:
     blur_kind_known: bool = True
     """Whether the kind of blur is known. False for an image nothing is known about and for an estimated record
     that found the image blurred but could not tell motion from defocus (it names both, ``model: estimated``): the
-    blur field alone then models the blur, the thin lens only with ``BlurFieldConfig.thin_lens_for_unknown_kind``."""
+    blur field alone then models the blur, the thin lens only with ``DegradationConfig.thin_lens_for_unknown_kind``."""
 
     def __post_init__(self) -> None:
         f = self.mixres_factor

@@ -26,6 +26,7 @@ import torch
 from torch import nn
 
 from gsmsdr_ns.blur.defocus import ThinLensDefocus
+from gsmsdr_ns.blur.degradation_config import DegradationConfig
 from gsmsdr_ns.blur.degradation_model import DegradationModel
 from gsmsdr_ns.blur.field import BlurFieldConfig
 from gsmsdr_ns.blur.profile import DegradationProfile
@@ -82,9 +83,9 @@ def reference_degradation(blur_field: BlurFieldConfig) -> DegradationModel:
     """Degradation models of one motion-blurred and one defocused view with everything ``blur_field`` can build:
     thin lens, camera shake paths and every kernel scale. Its state dict has the keys (relative to the degradation
     models) of any checkpoint trained with this config."""
-    config = dataclasses.replace(blur_field, thin_lens=True, camera_shake=True)
+    everything = DegradationConfig(thin_lens=True, camera_shake=True)
     profiles = [DegradationProfile(motion=True), DegradationProfile(defocus=True)]
-    return DegradationModel(profiles, config, num_downscales=len(config.kernel_sizes))
+    return DegradationModel(profiles, blur_field, everything, num_downscales=len(blur_field.kernel_sizes))
 
 
 def _first_key_of(module: nn.Module, part: type) -> str:
@@ -276,9 +277,9 @@ def check_thin_lens(layout: CheckpointLayout, model_state: State, checkpoint_sta
         checkpoint_state,
         layout.thin_lens_key,
         "has a thin lens that this run's config does not build: it was trained with the lens on images blurred by an "
-        "unknown kind of blur, which is now optional (add --pipeline.model.blur-field.thin-lens-for-unknown-kind True)",
-        "has no thin lens, but this run's config builds one (add --pipeline.model.blur-field.thin-lens False, or "
-        "--pipeline.model.blur-field.thin-lens-for-unknown-kind False if it was set)",
+        "unknown kind of blur, which is now optional (add --pipeline.model.degradation-model.thin-lens-for-unknown-kind True)",
+        "has no thin lens, but this run's config builds one (add --pipeline.model.degradation-model.thin-lens False, or "
+        "--pipeline.model.degradation-model.thin-lens-for-unknown-kind False if it was set)",
     )
 
 
@@ -290,9 +291,9 @@ def check_camera_shake(layout: CheckpointLayout, model_state: State, checkpoint_
         checkpoint_state,
         layout.camera_shake_key,
         "has camera shake paths that this run's config does not build (add "
-        "--pipeline.model.blur-field.camera-shake True)",
+        "--pipeline.model.degradation-model.camera-shake True)",
         "has no camera shake paths, but this run's config builds them (add "
-        "--pipeline.model.blur-field.camera-shake False)",
+        "--pipeline.model.degradation-model.camera-shake False)",
     )
 
 

@@ -40,6 +40,7 @@ from gsmsdr_ns.blur.degradation_model import (
     crop_margin,
     remap_legacy_keys,
 )
+from gsmsdr_ns.blur.degradation_config import DegradationConfig, split_legacy_blur_field_state
 from gsmsdr_ns.blur.field import BlurFieldConfig
 from gsmsdr_ns.blur.profile import training_profiles
 from gsmsdr_ns.data.effects import DegradationMode
@@ -84,9 +85,9 @@ class GSMSDRModelConfig(SplatfactoModelConfig):
     images nothing is known about get the blur field (any blur, any resolution loss). motion / defocus / mixres /
     sharp: that for every training image the records do not call undegraded (sharp: plain splatfacto)."""
     blur_field: BlurFieldConfig = field(default_factory=BlurFieldConfig)
-    """The blur field (MAAN + HPKO) simulating blur on training views; built only when some image needs it."""
-    resolution_kernel_size: int = 3
-    """Size of the learned residual kernel of the resolution-loss model (images of known lower resolution)."""
+    """The blur field's architecture (MAAN + HPKO); the field is built only when some image needs it."""
+    degradation_model: DegradationConfig = field(default_factory=DegradationConfig)
+    """Everything else about simulating a training image's degradation: lens, shake, schedule, losses."""
     viewer_blur_outputs: bool = True
     """At evaluation, also output degraded (the blur simulated for the nearest training view), kernel_size (blur
     extent in pixels) and blur_mask, for the viewer; rgb stays the sharp render. Needs a blur field."""
@@ -107,6 +108,21 @@ class GSMSDRModelConfig(SplatfactoModelConfig):
     device without waiting for it, and every N steps (and before every checkpoint) training stops with
     NonFiniteLossError naming the first bad step. 1: stop at the bad step itself, before its update; 0: no check;
     None: 1 on the CPU (reading costs no wait there), 10 on a GPU."""
+
+    def __setstate__(self, state: Dict) -> None:
+        """A config.yml written before ``degradation_model`` existed loads too: the options it kept in
+        ``blur_field`` (lens, shake, margin, schedule, loss weights) and ``resolution_kernel_size`` move there."""
+        state = dict(state)
+        if "degradation_model" not in state:
+            blur = state.get("blur_field")
+            own, moved = split_legacy_blur_field_state(vars(blur) if blur is not None else {})
+            if blur is not None:
+                vars(blur).clear()
+                vars(blur).update(own)
+            if "resolution_kernel_size" in state:
+                moved["resolution_kernel_size"] = state.pop("resolution_kernel_size")
+            state["degradation_model"] = DegradationConfig(**moved)
+        self.__dict__.update(state)
 
 
 class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):
@@ -143,9 +159,9 @@ class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):
         self.degradation = DegradationModel(
             profiles,
             self.config.blur_field,
+            self.config.degradation_model,
             num_downscales=self.config.num_downscales,
             resolution_schedule=self.config.resolution_schedule,
-            resolution_kernel_size=self.config.resolution_kernel_size,
             preview_max_side=self.config.viewer_blur_max_side,
         )
         if self.num_train_data > 0:

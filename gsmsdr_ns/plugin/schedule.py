@@ -89,7 +89,7 @@ class TrainingSchedule:
         doublings = max(self.num_downscales, 1)
         model.resolution_schedule = max(int(steps * self.resolution_fraction) // doublings, 1)
         warmup = max(int(steps * self.blur_warmup_fraction), 1)
-        model.blur_field = dataclasses.replace(model.blur_field, warmup=warmup)
+        model.degradation_model = dataclasses.replace(model.degradation_model, warmup=warmup)
         model.stop_split_at = max(int(steps * self.densify_until_fraction), 1)
         window = model.stop_split_at
         if self.refinement_window_fraction is not None:
