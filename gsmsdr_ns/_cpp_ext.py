@@ -200,7 +200,7 @@ class CppExtension:
     def choose_backend(
         self, requested: str, unavailable: str, fallback: str, stacklevel: int = 2
     ) -> Literal["cpp", "torch"]:
-        """"cpp" when the extension loads; else "torch", warning once per process why.
+        """ "cpp" when the extension loads; else "torch", warning once per process why.
 
         `requested` is "auto" or "cpp" (callers handle "torch" and invalid values, whose messages differ); an
         explicit "cpp" raises instead of falling back.

@@ -16,9 +16,12 @@ import subprocess
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Sequence, Tuple
+from typing import TYPE_CHECKING, List, Sequence, Tuple
 
 import pytest
+
+if TYPE_CHECKING:
+    import numpy as np
 
 TIMEOUT_SCALE = float(os.environ.get("GSMSDR_TEST_TIMEOUT_SCALE", "1"))
 """Multiplies every hang guard of the suite (pytest-timeout limits, subprocess timeouts, server waits)."""

@@ -117,7 +117,6 @@ def gaussians(means, log_scales, quats=None, logits=None, colors=None, seed=0) -
     }
 
 
-
 def extreme_parameters(n: int, seed: int) -> Dict[str, torch.Tensor]:
     """n Gaussians in front of the camera plus one of each extreme: tiny / huge scales, zero quaternion,
     saturated opacities, on the near plane, behind the camera, far outside the frustum."""
@@ -144,8 +143,6 @@ def extreme_parameters(n: int, seed: int) -> Dict[str, torch.Tensor]:
     }
 
 
-
-
 def saturate_heads(field: BlurField, scale: int, hot: int, mask_sign: float) -> None:
     """Make the scale's heads output kernel logits of +-1e4 (one-hot at window index ``hot``) and mask logits of
     ``mask_sign * 1e4`` regardless of the features."""
@@ -160,5 +157,3 @@ def saturate_heads(field: BlurField, scale: int, hot: int, mask_sign: float) -> 
         blur.bias[hot] = 1e4
         mask.weight.mul_(1e-3)
         mask.bias.fill_(mask_sign * 1e4)
-
-

@@ -17,6 +17,7 @@ from typing import Callable
 
 import numpy as np
 import pytest
+from conftest import write_transforms_json
 from nerfstudio.data.utils import colmap_parsing_utils as colmap_io
 from PIL import Image
 
@@ -29,7 +30,6 @@ from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.plugin.auto_dataparser import GSMSDRAutoDataParserConfig
 from gsmsdr_ns.plugin.dataparser import GSMSDRDataParserConfig
 from gsmsdr_ns.plugin.deblur_dataparser import DeblurNerfDataParserConfig
-from conftest import write_transforms_json
 
 TRAIN_VIEW = "frame_00003.png"  # index 3: a training view under hold=8 (views 0 and 8 are held out)
 

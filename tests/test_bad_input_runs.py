@@ -101,16 +101,24 @@ def test_ns_train_prints_our_error_as_one_line_and_the_traceback_only_with_gsmsd
     args = [str(BIN / "ns-train"), "gsmsdr", "--data", str(photos), "--output-dir", str(tmp_path / "out"),
             *map(str, TRAIN_FLAGS)]  # fmt: skip
     runs = {
-        debug: subprocess.Popen(args, cwd=tmp_path, env=cli_env(**({"GSMSDR_DEBUG": "1"} if debug else {})),
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+        debug: subprocess.Popen(
+            args,
+            cwd=tmp_path,
+            env=cli_env(**({"GSMSDR_DEBUG": "1"} if debug else {})),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )  # fmt: skip
         for debug in (False, True)
     }
     logs = {debug: proc.communicate(timeout=scaled(600)) for debug, proc in runs.items()}
     out, err = logs[False]
     assert runs[False].returncode == 1, (out + err)[-3000:]
     assert "Traceback" not in out + err, err[-3000:]
-    expected = (f"InputError: gsmsdr: '{photos}' holds photos ({photos / 'images'}) but no camera poses. Compute "
-                f"them with `gsmsdr-process --images {photos / 'images'} --out {tmp_path / 'photos-scene'}`")
+    expected = (
+        f"InputError: gsmsdr: '{photos}' holds photos ({photos / 'images'}) but no camera poses. Compute "
+        f"them with `gsmsdr-process --images {photos / 'images'} --out {tmp_path / 'photos-scene'}`"
+    )
     assert lines_with(out + err, "InputError") == [err.strip().splitlines()[-1]], err[-3000:]
     assert err.strip().splitlines()[-1].startswith(expected), err[-3000:]
     debug_out, debug_err = logs[True]
@@ -364,9 +372,13 @@ def test_a_checkpoint_with_or_without_camera_shake_paths_names_the_flag_to_load_
         return _model(gsmsdr_trainer_config, degradation="motion", degradation_model=options)
 
     with_paths, without = motion_model(shake=True), motion_model(shake=False)
-    with pytest.raises(CheckpointMismatchError, match=r"has camera shake paths .*degradation-model.camera-shake True\)"):
+    with pytest.raises(
+        CheckpointMismatchError, match=r"has camera shake paths .*degradation-model.camera-shake True\)"
+    ):
         without.load_state_dict(with_paths.state_dict())
-    with pytest.raises(CheckpointMismatchError, match=r"has no camera shake paths, .*degradation-model.camera-shake False"):
+    with pytest.raises(
+        CheckpointMismatchError, match=r"has no camera shake paths, .*degradation-model.camera-shake False"
+    ):
         with_paths.load_state_dict(without.state_dict())
     with_paths.load_state_dict(motion_model(shake=True).state_dict())  # the same config loads
 
@@ -455,8 +467,21 @@ def _interrupt_when(proc: subprocess.Popen, ready, what: str) -> tuple:
 def test_ctrl_c_in_ns_train_prints_one_line_keeps_the_last_checkpoint_and_exits_130(tiny_scene: Path, tmp_path):
     """nerfstudio's launcher prints KeyboardInterrupt's traceback and exits 0; our trainer exits 130 with one line
     naming the last complete checkpoint, which loads."""
-    args = [str(BIN / "ns-train"), "gsmsdr", "--data", str(tiny_scene), "--output-dir", str(tmp_path / "out"),
-            "--timestamp", "run", "--max-num-iterations", "100000", "--steps-per-save", "3", *map(str, TRAIN_FLAGS)]
+    args = [
+        str(BIN / "ns-train"),
+        "gsmsdr",
+        "--data",
+        str(tiny_scene),
+        "--output-dir",
+        str(tmp_path / "out"),
+        "--timestamp",
+        "run",
+        "--max-num-iterations",
+        "100000",
+        "--steps-per-save",
+        "3",
+        *map(str, TRAIN_FLAGS),
+    ]
     proc = subprocess.Popen(args, cwd=tmp_path, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
     models = tmp_path / "out" / tiny_scene.name / "gsmsdr" / "run" / "nerfstudio_models"
@@ -472,8 +497,17 @@ def test_ctrl_c_in_ns_train_prints_one_line_keeps_the_last_checkpoint_and_exits_
 
 
 def test_ctrl_c_while_ns_train_sets_up_exits_130_with_one_line(tiny_scene: Path, tmp_path):
-    args = [str(BIN / "ns-train"), "gsmsdr", "--data", str(tiny_scene), "--output-dir", str(tmp_path / "out"),
-            "--timestamp", "run", *map(str, TRAIN_FLAGS)]
+    args = [
+        str(BIN / "ns-train"),
+        "gsmsdr",
+        "--data",
+        str(tiny_scene),
+        "--output-dir",
+        str(tmp_path / "out"),
+        "--timestamp",
+        "run",
+        *map(str, TRAIN_FLAGS),
+    ]
     proc = subprocess.Popen(args, cwd=tmp_path, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
     log = []

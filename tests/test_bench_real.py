@@ -13,6 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import shared_fern
+from skimage.filters import gaussian
+from skimage.transform import resize
 
 from gsmsdr_ns.bench.fingerprint import fingerprint
 from gsmsdr_ns.bench.methods import METHODS
@@ -22,9 +25,6 @@ from gsmsdr_ns.blur.profile import DegradationProfile
 from gsmsdr_ns.io.colmap import read_colmap
 from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.io.images import read_image_float
-from skimage.filters import gaussian
-from skimage.transform import resize
-from conftest import shared_fern
 
 NUM_PHOTOS = 6
 
@@ -84,7 +84,8 @@ def test_shipped_real_suite_parses() -> None:
     assert suite.steps == [3000] and len(suite.seeds) >= 3
     # the two bounds train on different photos: their records must not be taken for each other's
     assert fingerprint(suite, RunKey("fern-motion", "sharp", 3000, 0)) != fingerprint(
-        suite, RunKey("fern-motion", "sharp-degraded-poses", 3000, 0))
+        suite, RunKey("fern-motion", "sharp-degraded-poses", 3000, 0)
+    )
     assert suite.align_poses
     assert suite.threads == 1 and "registered" in suite.scenes[0].describe()
 
@@ -111,7 +112,8 @@ def test_real_ablations_share_the_real_suites_shaken_scene() -> None:
     diagnostics = {"full-uncentred", "full-poses", "plain-poses", "full-lens-unknown", "full-paper-loss"}
     assert {"plain", "full"} | diagnostics <= set(ablations.methods)
     assert fingerprint(ablations, RunKey("fern-motion", "full", 3000, 0)) == fingerprint(
-        real, RunKey("fern-motion", "full", 3000, 0))
+        real, RunKey("fern-motion", "full", 3000, 0)
+    )
 
 
 @pytest.mark.parametrize(
@@ -298,7 +300,8 @@ def test_real_suite_end_to_end(photo_set, tmp_path: Path, monkeypatch: pytest.Mo
     # what a later estimate is checked against before this record is kept (rekey_unchanged_estimates)
     key = RunKey("fern6-motion", "full", 20, 0)
     assert by_method["full"]["training_records"] == training_records_digest(
-        outcome_suite, key, tmp_path / "out", tmp_path / "ns")
+        outcome_suite, key, tmp_path / "out", tmp_path / "ns"
+    )
     assert "training_records" not in by_method["plain"]
     assert re.search(r"-true-l\d+$", by_method["full-true"]["data"])  # its twin with the true records
     assert all(np.isfinite(r["psnr"]) and r["num_test_views"] == 2 for r in outcome.records)

@@ -5,9 +5,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from test_bench_suite import TINY_SUITE
+
 from gsmsdr_ns.bench.report import aggregate, format_markdown
 from gsmsdr_ns.bench.suite_config import load_suite
-from test_bench_suite import TINY_SUITE
 
 SUITE = TINY_SUITE.replace("name: tiny", "name: seeds") + "seeds: [0, 1, 2]\n"  # plain and full, 20 steps
 

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import shared_fern
 from scipy.spatial.transform import Rotation
 
-from conftest import shared_fern
 from gsmsdr_ns.bench.sfm import format_table, llff_cameras_opencv, pose_errors, run_sfm_benchmark, write_results
 
 FERN = shared_fern()

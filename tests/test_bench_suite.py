@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 
 from gsmsdr_ns.bench.cli import map_quick
-from gsmsdr_ns.bench.methods import METHODS
 from gsmsdr_ns.bench.fingerprint import fingerprint
+from gsmsdr_ns.bench.methods import METHODS
 from gsmsdr_ns.bench.records import finished_record, record_path
 from gsmsdr_ns.bench.runner import run_suite
 from gsmsdr_ns.bench.suite_config import RunKey, SuiteConfigError, find_suite_file, load_suite
@@ -68,12 +68,21 @@ BAD_SUITES = [
     ("duplicate scenes", TINY_SUITE.replace("[motion]", "[motion, motion]"), "scenes"),
     ("missing user scene", TINY_SUITE.replace("[motion]", "[{path: no/such/scene}]"), "scenes[0].path"),
     ("variant and path", TINY_SUITE.replace("[motion]", "[{variant: motion, path: x}]"), "scenes[0]"),
-    ("unknown schedule key", TINY_SUITE.replace("{num_downscales: 0}", "{num_downscale: 0}"),
-     "schedule.num_downscale"),  # fmt: skip
-    ("bad optional schedule value", TINY_SUITE.replace("{num_downscales: 0}", "{densify_warmup_fraction: soon}"),
-     "schedule.densify_warmup_fraction"),  # fmt: skip
-    ("schedule value out of range", TINY_SUITE.replace("{num_downscales: 0}", "{resolution_fraction: 2.0}"),
-     "resolution_fraction"),  # fmt: skip
+    (
+        "unknown schedule key",
+        TINY_SUITE.replace("{num_downscales: 0}", "{num_downscale: 0}"),
+        "schedule.num_downscale",
+    ),  # fmt: skip
+    (
+        "bad optional schedule value",
+        TINY_SUITE.replace("{num_downscales: 0}", "{densify_warmup_fraction: soon}"),
+        "schedule.densify_warmup_fraction",
+    ),  # fmt: skip
+    (
+        "schedule value out of range",
+        TINY_SUITE.replace("{num_downscales: 0}", "{resolution_fraction: 2.0}"),
+        "resolution_fraction",
+    ),  # fmt: skip
     ("bad eval interval", TINY_SUITE.replace("eval_every: 10", "eval_every: often"), "eval_every"),
     ("not a mapping", "- just\n- a list\n", "must be a YAML mapping"),
     ("not YAML", "name: [unclosed\n", "not valid YAML"),
@@ -90,8 +99,10 @@ def test_invalid_suite_names_file_and_key(tmp_path: Path, label: str, text: str,
 
 
 def test_suite_schedule_reaches_the_training_schedule(tmp_path: Path) -> None:
-    text = TINY_SUITE.replace("{num_downscales: 0}", "{num_downscales: 0, densify_warmup_fraction: null, "
-                              "refinement_window_fraction: 1.0, lr_schedulers: [means]}")
+    text = TINY_SUITE.replace(
+        "{num_downscales: 0}",
+        "{num_downscales: 0, densify_warmup_fraction: null, refinement_window_fraction: 1.0, lr_schedulers: [means]}",
+    )
     schedule = load_suite(write_suite(tmp_path, text)).schedule_for(300)
     assert schedule.steps == 300 and schedule.num_downscales == 0 and schedule.refinement_window_fraction == 1.0
     assert schedule.densify_warmup_fraction is None and schedule.lr_schedulers == ("means",)
@@ -142,10 +153,14 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert METHODS["msd-only"].modules() == dict(GAKA=False, SAFM=False, MCA=False, RGBD=True, HPKO=True)
     # pose refinement: off as in splatfacto, on the degraded views for full-poses, on every view for plain-poses
     assert model("full").camera_optimizer.mode == "off" and model("plain").camera_optimizer.mode == "off"
-    assert (model("full-poses").camera_optimizer.mode, model("full-poses").camera_optimizer_views) == ("SO3xR3",
-                                                                                                       "degraded")
-    assert (model("plain-poses").camera_optimizer.mode, model("plain-poses").camera_optimizer_views) == ("SO3xR3",
-                                                                                                         "all")
+    assert (model("full-poses").camera_optimizer.mode, model("full-poses").camera_optimizer_views) == (
+        "SO3xR3",
+        "degraded",
+    )
+    assert (model("plain-poses").camera_optimizer.mode, model("plain-poses").camera_optimizer_views) == (
+        "SO3xR3",
+        "all",
+    )
     assert model("plain-poses").degradation == "sharp"
     options = {name: model(name).degradation_model for name in METHODS if METHODS[name].has_blur_field}
     assert options["full-uncentred"].kernel_centre_weight == 0 < options["full"].kernel_centre_weight

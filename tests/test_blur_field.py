@@ -18,10 +18,10 @@ from gsmsdr_ns.blur.degradation_model import DegradationModel
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo, kernel_prior_logits, kernel_upsample_matrix
 from gsmsdr_ns.blur.losses import DegradationAux, DegradationLossWeights, degradation_losses, mask_regulariser
-from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels, apply_pixel_kernels
 from gsmsdr_ns.blur.maan import GAKA, MCA, SAFM, BAGSFeatures, RGBDFeatures, normalize_depth, positional_encoding_2d
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, effective_factor
 from gsmsdr_ns.ops.mixres import resolution_loss
+from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels, apply_pixel_kernels
 
 NUM_VIEWS = 5
 

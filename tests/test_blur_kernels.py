@@ -12,7 +12,12 @@ import re
 import pytest
 import torch
 
-from gsmsdr_ns.ops.pixel_kernels import ApplyPixelKernels, apply_pixel_kernels, apply_pixel_kernels_unfold, pixel_kernel_size
+from gsmsdr_ns.ops.pixel_kernels import (
+    ApplyPixelKernels,
+    apply_pixel_kernels,
+    apply_pixel_kernels_unfold,
+    pixel_kernel_size,
+)
 from gsmsdr_ns.ops.pixel_kernels_cpp import load_pixel_kernels_extension
 
 BACKENDS = ["cpp", "torch"]

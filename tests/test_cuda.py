@@ -55,7 +55,13 @@ def _scene(seed: int, n: int = 400, width: int = 96, height: int = 64, sh_degree
     if sh_degree is not None:
         g = torch.Generator().manual_seed(seed + 1)
         colors = 0.3 * torch.randn(n, (sh_degree + 1) ** 2, 3, generator=g)
-    return dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors), viewmats, Ks, width, height
+    return (
+        dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors),
+        viewmats,
+        Ks,
+        width,
+        height,
+    )
 
 
 def _render(params, viewmats, Ks, width, height, device, **kwargs):
@@ -196,7 +202,9 @@ def test_thin_lens_op_matches_the_cpu_kernel(occluding):
     if occluding:
         inputs = dict(image=image, radius=radius, inverse_depth=inverse_depth)
         _grads_match(
-            lambda image, radius, inverse_depth: apply_occluding_defocus(image, radius, inverse_depth, K, backend="cpp"),
+            lambda image, radius, inverse_depth: apply_occluding_defocus(
+                image, radius, inverse_depth, K, backend="cpp"
+            ),
             lambda image, radius, inverse_depth: apply_occluding_defocus(image, radius, inverse_depth, K),
             inputs,
         )
@@ -295,7 +303,7 @@ def _site(stack: List[traceback.FrameSummary]) -> Tuple[bool, str]:
     inner = frames[0]
     parts = Path(inner.filename).parts
     ours = "gsmsdr_ns" in parts
-    name = "/".join(parts[parts.index("gsmsdr_ns"):]) if ours else "/".join(parts[-2:])
+    name = "/".join(parts[parts.index("gsmsdr_ns") :]) if ours else "/".join(parts[-2:])
     chain = " <- ".join(f"{Path(f.filename).name}:{f.name}" for f in frames[:5])
     return ours, f"{name}:{inner.lineno} ({chain})"
 

@@ -16,9 +16,9 @@ from typing import Dict, Optional
 import numpy as np
 import pytest
 import torch
-from PIL import Image, ImageFilter
-
+from conftest import TRAIN_FLAGS, make_tiny_scene, run_cli, write_transforms_json
 from nerfstudio.data.utils import colmap_parsing_utils as colmap_io
+from PIL import Image, ImageFilter
 
 from gsmsdr_ns.data.cameras import cameras_from_colmap, depth_bounds, llff_to_opencv, opencv_to_llff, write_poses_bounds
 from gsmsdr_ns.data.layout import detect_layout
@@ -29,7 +29,6 @@ from gsmsdr_ns.plugin.auto_dataparser import GSMSDRAutoDataParser, GSMSDRAutoDat
 from gsmsdr_ns.plugin.dataparser import GSMSDRDataParser, GSMSDRDataParserConfig
 from gsmsdr_ns.plugin.deblur_dataparser import DeblurNerfDataParser, DeblurNerfDataParserConfig
 from gsmsdr_ns.plugin.mixres_dataparser import MixresDataParserConfig
-from conftest import TRAIN_FLAGS, make_tiny_scene, run_cli, write_transforms_json
 
 NUM_VIEWS = 16
 TEST_NAMES = ["frame_00000.png", "frame_00008.png"]  # index % 8 == 0 among 16 views sorted by name
@@ -441,6 +440,7 @@ def test_mixres_images_are_downscaled_and_upsampled(colmap_scene):
             np.testing.assert_array_equal(image, downscale_upscale(original, record["mixres_factor"]))
     # stronger downscaling loses more detail (high-frequency energy)
     img = pixels(colmap_scene / "images" / "frame_00001.png")
+
     def detail(image):
         return np.abs(np.diff(image.astype(np.float64), axis=1)).mean()
 
@@ -579,8 +579,21 @@ def train_and_eval(scene: Path, dataparser: str, work: Path) -> dict:
     out = work / "outputs"
     proc = run_cli(
         "ns-train",
-        ["gsmsdr", "--data", scene, "--output-dir", out, "--timestamp", "run", "--max-num-iterations", E2E_STEPS,
-         "--steps-per-save", E2E_STEPS, *TRAIN_FLAGS, dataparser],  # fmt: skip
+        [
+            "gsmsdr",
+            "--data",
+            scene,
+            "--output-dir",
+            out,
+            "--timestamp",
+            "run",
+            "--max-num-iterations",
+            E2E_STEPS,
+            "--steps-per-save",
+            E2E_STEPS,
+            *TRAIN_FLAGS,
+            dataparser,
+        ],  # fmt: skip
         cwd=work,
     )
     log = proc.stdout + proc.stderr

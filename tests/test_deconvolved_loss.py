@@ -1,4 +1,5 @@
-"""The deconvolved residual (``ops/deconvolved_loss.py``): the residual weighted by the inverse of the blur's spectrum."""
+"""The deconvolved residual (``ops/deconvolved_loss.py``): the residual weighted by the inverse of the blur's
+spectrum."""
 
 from __future__ import annotations
 

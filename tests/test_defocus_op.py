@@ -9,9 +9,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gsmsdr_ns.ops.disk_kernels import occluding_disk_kernels, soft_disk_kernels
 from gsmsdr_ns.ops.disk_defocus import apply_occluding_defocus, apply_soft_disk_defocus
 from gsmsdr_ns.ops.disk_defocus_cpp import disk_kernels_cpp_error
+from gsmsdr_ns.ops.disk_kernels import occluding_disk_kernels, soft_disk_kernels
 from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels
 
 BACKENDS = ("cpp", "torch")

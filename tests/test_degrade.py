@@ -14,9 +14,9 @@ import numpy as np
 import pycolmap
 import pytest
 import torch
+from conftest import run_cli
 from PIL import Image
 
-from conftest import run_cli
 from gsmsdr_ns.degrade import (
     DefocusConfig,
     DegradeConfig,
@@ -46,9 +46,9 @@ from gsmsdr_ns.degrade import (
 from gsmsdr_ns.degrade import pipeline as pipe_mod
 from gsmsdr_ns.degrade.cli import entrypoint as degrade_entrypoint
 from gsmsdr_ns.degrade.cli import parse as degrade_parse
+from gsmsdr_ns.degrade.synth_cli import parse as synth_parse
 from gsmsdr_ns.degrade.trajectory import rotvec_to_matrix
 from gsmsdr_ns.degrade.variants import BUILTIN_PRESETS
-from gsmsdr_ns.degrade.synth_cli import parse as synth_parse
 from gsmsdr_ns.io.colmap import read_colmap
 from gsmsdr_ns.io.errors import InputError
 
@@ -216,8 +216,9 @@ def test_trajectory_subframe_interpolation_matches_rendering_every_sample(tiny_s
                       src.synth_config, 1.0)  # fmt: skip
     outs = []
     for spacing in (0.5, 6.0):  # a re-render per exposure sample vs one sub-frame warped by plane homographies
-        mc = MotionConfig(min_blur_px=6.0, max_blur_px=6.0, keyframe_spacing_px=spacing,
-                          render_supersample=3)  # anti-aliased sub-frames: compare geometry, not sampling noise
+        mc = MotionConfig(
+            min_blur_px=6.0, max_blur_px=6.0, keyframe_spacing_px=spacing, render_supersample=3
+        )  # anti-aliased sub-frames: compare geometry, not sampling noise
         img, rec = motion_effect(torch.zeros(1, 3, 48, 64), ctx, mc, np.random.default_rng(7))
         outs.append((img.clamp(0, 1), rec))
     (exact, r_exact), (fast, r_fast) = outs

@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import fern_capture, shared_fern
 
 from gsmsdr_ns.degrade import DefocusConfig, DegradeConfig, MotionConfig, degrade_scene
 from gsmsdr_ns.degrade.kernels import rotational_shake_blur
 from gsmsdr_ns.degrade.trajectory import border_reach_px, calibrated_shake
 from gsmsdr_ns.io.colmap import read_colmap
 from gsmsdr_ns.io.images import read_image, read_image_float
-from conftest import fern_capture, shared_fern
 
 
 @pytest.fixture(scope="module")

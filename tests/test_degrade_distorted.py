@@ -12,6 +12,7 @@ import pycolmap
 import pytest
 import torch
 import torch.nn.functional as F
+from conftest import fern_capture
 
 from gsmsdr_ns.degrade import DegradeConfig, MotionConfig, degrade_scene
 from gsmsdr_ns.degrade.cli import parse as degrade_parse
@@ -20,7 +21,6 @@ from gsmsdr_ns.degrade.undistort import describe_distortion
 from gsmsdr_ns.io.colmap import read_colmap
 from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.io.images import read_image_float, write_image
-from conftest import fern_capture
 
 K1 = 0.06
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_estimate import defocus_by, dwelling_shake, motion_blur, sharp_views
 
 from gsmsdr_ns.estimate import EstimateConfig, estimate_degradations
 from gsmsdr_ns.estimate.ensemble import (
@@ -29,7 +30,6 @@ from gsmsdr_ns.estimate.ensemble import (
 from gsmsdr_ns.estimate.records import estimate_fingerprint
 from gsmsdr_ns.io.images import write_image
 from tools.estimate.fit_ensembles import FitEnsemblesCLI, FitSettings, collect_rows
-from test_estimate import defocus_by, dwelling_shake, motion_blur, sharp_views
 
 
 def _stump(feature: int, threshold: float, low: float, high: float) -> dict:
@@ -275,8 +275,8 @@ def test_the_fit_refuses_sets_without_both_kinds(evaluation_sets, tmp_path):
 
 
 def test_the_fit_trains_on_exactly_what_the_estimate_reads(evaluation_sets):
-    from tools.estimate.fit_ensembles import scene_rows
     from gsmsdr_ns.estimate.records import read_folder
+    from tools.estimate.fit_ensembles import scene_rows
 
     scene = evaluation_sets[0] / "synth-motion"
     X, labels, truth = scene_rows(scene)

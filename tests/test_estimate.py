@@ -14,10 +14,7 @@ import skimage.data
 import torch
 
 from gsmsdr_ns.data.degradation import load_degradation_json, match_entries, record_from_entry
-from gsmsdr_ns.io.errors import InputError
-from gsmsdr_ns.io.images import write_image
 from gsmsdr_ns.degrade.kernels import convolve_psf, disk_blur, motion_kernel_from_trajectory
-from gsmsdr_ns.ops.mixres import apply_mixres
 from gsmsdr_ns.estimate import EstimateConfig, estimate_degradations
 from gsmsdr_ns.estimate.classify import threshold_stages
 from gsmsdr_ns.estimate.cli import parse
@@ -31,6 +28,9 @@ from gsmsdr_ns.estimate.records import (
     estimate_scene_records,
     read_folder,
 )
+from gsmsdr_ns.io.errors import InputError
+from gsmsdr_ns.io.images import write_image
+from gsmsdr_ns.ops.mixres import apply_mixres
 
 # A hand-held capture: views of one scene from slightly shifted positions (crops of a real photo).
 OFFSETS = [(0, 0), (16, 40), (32, 80), (48, 120), (64, 20), (100, 60), (120, 100), (80, 128)]
@@ -321,6 +321,7 @@ def _fern_set() -> list[np.ndarray]:
     """The 20 real fern photos at 252x189; photos 10-14 shaken along bent paths (7 px, five directions),
     photos 15-19 defocused by disks of radius 3-4 px (the first 10 stay sharp)."""
     from conftest import shared_fern
+
     from gsmsdr_ns.io.images import list_images, read_image
 
     folder = shared_fern() / "images_16"

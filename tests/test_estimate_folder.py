@@ -7,9 +7,9 @@ import json
 import shutil
 from pathlib import Path
 
+from conftest import shaken_photo, shared_fern
 from PIL import Image
 
-from conftest import shaken_photo, shared_fern
 from gsmsdr_ns.io.images import write_image
 from gsmsdr_ns.plugin.auto_dataparser import GSMSDRAutoDataParserConfig, estimate_folder
 

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import shaken_photo, shared_fern
 
 from gsmsdr_ns.blur.profile import training_profiles
 from gsmsdr_ns.degrade.kernels import disk_blur
 from gsmsdr_ns.io.images import read_image, write_image
-from conftest import shaken_photo, shared_fern
 
 MOTION = ("image003.png", "image010.png", "image013.png")
 DEFOCUS = ("image005.png", "image017.png")

@@ -94,7 +94,8 @@ def test_the_training_datamanager_reads_16_bit_scenes_at_their_depth(deep_scene:
     from gsmsdr_ns.plugin.datamanager import GSMSDRDatamanagerConfig, GSMSDRInputDataset
 
     config = GSMSDRDatamanagerConfig(
-        dataparser=GSMSDRAutoDataParserConfig(data=deep_scene, estimate_degradations=False), cache_images="gpu",
+        dataparser=GSMSDRAutoDataParserConfig(data=deep_scene, estimate_degradations=False),
+        cache_images="gpu",
         cache_images_type="uint8",  # as the presets cache them
     )
     config.data = deep_scene

@@ -36,8 +36,20 @@ def extension():
 # --------------------------------------------------------------------------------------------------------------
 
 
-def make_scene(seed, C=2, N=40, W=29, H=21, D=3, tile_size=8, dtype=torch.float64, scale=(0.8, 3.5),
-               opacity=(0.05, 0.95), margin=3.0, region=None):
+def make_scene(
+    seed,
+    C=2,
+    N=40,
+    W=29,
+    H=21,
+    D=3,
+    tile_size=8,
+    dtype=torch.float64,
+    scale=(0.8, 3.5),
+    opacity=(0.05, 0.95),
+    margin=3.0,
+    region=None,
+):
     """Random 2D Gaussians. region=(x0, x1, y0, y1) confines the centres (to leave tiles empty)."""
     g = torch.Generator().manual_seed(seed)
     x0, x1, y0, y1 = region if region is not None else (-margin, W + margin, -margin, H + margin)
@@ -58,9 +70,16 @@ def make_scene(seed, C=2, N=40, W=29, H=21, D=3, tile_size=8, dtype=torch.float6
     backgrounds = torch.rand(C, D, generator=g, dtype=torch.float64)
     offsets, flatten_ids = build_isects(means2d, radii, depths, W, H, tile_size)
     return dict(
-        means2d=means2d.to(dtype), conics=conics.to(dtype), colors=colors.to(dtype),
-        opacities=opacities.to(dtype), backgrounds=backgrounds.to(dtype), W=W, H=H, tile_size=tile_size,
-        isect_offsets=offsets, flatten_ids=flatten_ids,
+        means2d=means2d.to(dtype),
+        conics=conics.to(dtype),
+        colors=colors.to(dtype),
+        opacities=opacities.to(dtype),
+        backgrounds=backgrounds.to(dtype),
+        W=W,
+        H=H,
+        tile_size=tile_size,
+        isect_offsets=offsets,
+        flatten_ids=flatten_ids,
     )
 
 
@@ -101,8 +120,20 @@ def tile_range(offsets, n_isects, c, t):
 # --------------------------------------------------------------------------------------------------------------
 
 
-def reference_rasterize(means2d, conics, colors, opacities, W, H, tile_size, offsets, flatten_ids,
-                        backgrounds=None, stats=None, per_pixel=None):
+def reference_rasterize(
+    means2d,
+    conics,
+    colors,
+    opacities,
+    W,
+    H,
+    tile_size,
+    offsets,
+    flatten_ids,
+    backgrounds=None,
+    stats=None,
+    per_pixel=None,
+):
     """Spec semantics, literally: every pixel walks its tile's list front to back. Returns colors [C,H,W,D],
     alphas [C,H,W,1]. per_pixel: a list that receives (flat id, offsets leaf [P, 2]) for every tile entry; the
     leaves are zero shifts of the centre seen by each pixel, so their .grad is the per-pixel d loss / d means2d.
@@ -161,8 +192,16 @@ def run_cpp(scene, requires_grad=False, with_bg=True, absgrad=False, dtype=None)
     names = ["means2d", "conics", "colors", "opacities"] + (["backgrounds"] if with_bg else [])
     leaves = {k: scene[k].detach().to(dtype).clone().requires_grad_(requires_grad) for k in names}
     out = rasterize_to_pixels_cpp(
-        leaves["means2d"], leaves["conics"], leaves["colors"], leaves["opacities"], scene["W"], scene["H"],
-        scene["tile_size"], scene["isect_offsets"], scene["flatten_ids"], backgrounds=leaves.get("backgrounds"),
+        leaves["means2d"],
+        leaves["conics"],
+        leaves["colors"],
+        leaves["opacities"],
+        scene["W"],
+        scene["H"],
+        scene["tile_size"],
+        scene["isect_offsets"],
+        scene["flatten_ids"],
+        backgrounds=leaves.get("backgrounds"),
         absgrad=absgrad,
     )
     return out, leaves
@@ -172,8 +211,17 @@ def run_ref(scene, with_bg=True, stats=None, per_pixel=None):
     names = ["means2d", "conics", "colors", "opacities"] + (["backgrounds"] if with_bg else [])
     leaves = {k: scene[k].detach().to(torch.float64).clone().requires_grad_(True) for k in names}
     out = reference_rasterize(
-        leaves["means2d"], leaves["conics"], leaves["colors"], leaves["opacities"], scene["W"], scene["H"],
-        scene["tile_size"], scene["isect_offsets"], scene["flatten_ids"], leaves.get("backgrounds"), stats,
+        leaves["means2d"],
+        leaves["conics"],
+        leaves["colors"],
+        leaves["opacities"],
+        scene["W"],
+        scene["H"],
+        scene["tile_size"],
+        scene["isect_offsets"],
+        scene["flatten_ids"],
+        leaves.get("backgrounds"),
+        stats,
         per_pixel,
     )
     return out, leaves
@@ -237,8 +285,13 @@ def test_backward_matches_reference(D):
             got = leaves[name].grad
             assert got is not None and got.dtype == dtype, name
             scale = ref_leaf.grad.abs().max().item()
-            torch.testing.assert_close(got.double(), ref_leaf.grad, rtol=rtol, atol=atol * max(scale, 1.0),
-                                       msg=lambda m, n=name, d=dtype: f"{n} ({d}): {m}")
+            torch.testing.assert_close(
+                got.double(),
+                ref_leaf.grad,
+                rtol=rtol,
+                atol=atol * max(scale, 1.0),
+                msg=lambda m, n=name, d=dtype: f"{n} ({d}): {m}",
+            )
 
 
 def test_saturated_scene_early_stop_and_clamp():
@@ -292,8 +345,7 @@ def min_threshold_margin(scene):
 @pytest.mark.parametrize("with_bg", [False, True])
 def test_gradcheck_tiny_scene(with_bg):
     for seed in range(100, 200):  # first scene whose decisions are safely away from the thresholds
-        scene = make_scene(seed=seed, C=2, N=5, W=10, H=9, D=3, tile_size=4, scale=(0.7, 2.0),
-                           opacity=(0.2, 0.8))
+        scene = make_scene(seed=seed, C=2, N=5, W=10, H=9, D=3, tile_size=4, scale=(0.7, 2.0), opacity=(0.2, 0.8))
         if scene["flatten_ids"].numel() >= 10 and min_threshold_margin(scene) > 1e-3:
             break
     else:
@@ -303,8 +355,16 @@ def test_gradcheck_tiny_scene(with_bg):
 
     def fn(means2d, conics, colors, opacities, *maybe_bg):
         return rasterize_to_pixels_cpp(
-            means2d, conics, colors, opacities, scene["W"], scene["H"], scene["tile_size"],
-            scene["isect_offsets"], scene["flatten_ids"], backgrounds=maybe_bg[0] if maybe_bg else None,
+            means2d,
+            conics,
+            colors,
+            opacities,
+            scene["W"],
+            scene["H"],
+            scene["tile_size"],
+            scene["isect_offsets"],
+            scene["flatten_ids"],
+            backgrounds=maybe_bg[0] if maybe_bg else None,
         )
 
     args = tuple(inputs) + ((bg,) if with_bg else ())
@@ -335,8 +395,16 @@ def test_absgrad_is_sum_of_abs_per_pixel_grads():
     assert not means2d.is_contiguous()
     means2d.retain_grad()
     out = rasterize_to_pixels_cpp(
-        means2d, scene["conics"], scene["colors"], scene["opacities"], scene["W"], scene["H"],
-        scene["tile_size"], scene["isect_offsets"], scene["flatten_ids"], backgrounds=scene["backgrounds"],
+        means2d,
+        scene["conics"],
+        scene["colors"],
+        scene["opacities"],
+        scene["W"],
+        scene["H"],
+        scene["tile_size"],
+        scene["isect_offsets"],
+        scene["flatten_ids"],
+        backgrounds=scene["backgrounds"],
         absgrad=True,
     )
     backprop(out, grads)
@@ -376,8 +444,9 @@ def test_empty_tiles_and_zero_intersections():
     # centres confined to the left part: the right tiles have empty lists
     scene = make_scene(seed=8, W=33, H=17, region=(0, 8, 0, 17), scale=(0.8, 1.5))
     tw = scene["isect_offsets"].shape[2]
-    counts = torch.diff(torch.cat([scene["isect_offsets"].reshape(-1).long(),
-                                   torch.tensor([scene["flatten_ids"].numel()])]))
+    counts = torch.diff(
+        torch.cat([scene["isect_offsets"].reshape(-1).long(), torch.tensor([scene["flatten_ids"].numel()])])
+    )
     assert (counts.reshape(2, -1, tw)[..., -1] == 0).all()
     ref_out, ref_leaves = run_ref(scene)
     grads = upstream(ref_out, seed=2)
@@ -397,8 +466,9 @@ def test_empty_tiles_and_zero_intersections():
     opac = torch.rand(C, N, dtype=torch.float64, requires_grad=True)
     offsets = torch.zeros(C, 2, 3, dtype=torch.int32)
     ids = torch.zeros(0, dtype=torch.int32)
-    img, alpha = rasterize_to_pixels_cpp(means2d, conics, colors, opac, 40, 20, 16, offsets, ids, backgrounds=bg,
-                                         absgrad=True)
+    img, alpha = rasterize_to_pixels_cpp(
+        means2d, conics, colors, opac, 40, 20, 16, offsets, ids, backgrounds=bg, absgrad=True
+    )
     assert torch.equal(img, bg[:, None, None].expand(C, 20, 40, D)) and torch.equal(alpha, torch.zeros_like(alpha))
     v = torch.randn_like(img)
     (img * v).sum().backward()
@@ -409,8 +479,9 @@ def test_empty_tiles_and_zero_intersections():
 
     # no Gaussians at all
     empty = torch.zeros(C, 0, 2, dtype=torch.float32, requires_grad=True)
-    img, alpha = rasterize_to_pixels_cpp(empty, torch.zeros(C, 0, 3), torch.zeros(C, 0, D), torch.zeros(C, 0), 40,
-                                         20, 16, offsets, ids)
+    img, alpha = rasterize_to_pixels_cpp(
+        empty, torch.zeros(C, 0, 3), torch.zeros(C, 0, D), torch.zeros(C, 0), 40, 20, 16, offsets, ids
+    )
     assert torch.equal(img, torch.zeros(C, 20, 40, D)) and torch.equal(alpha, torch.zeros(C, 20, 40, 1))
     img.sum().backward()
     assert empty.grad.shape == (C, 0, 2)
@@ -433,8 +504,15 @@ def test_noncontiguous_inputs_match_contiguous():
     assert not any(v.is_contiguous() for _, v in views.values()) and not opac_leaf.t().is_contiguous()
     ids_big = torch.stack([scene["flatten_ids"], scene["flatten_ids"]], dim=1)
     out = rasterize_to_pixels_cpp(
-        views["means2d"][1], views["conics"][1], views["colors"][1], opac_leaf.t(), scene["W"], scene["H"],
-        scene["tile_size"], scene["isect_offsets"].transpose(1, 2).contiguous().transpose(1, 2), ids_big[:, 0],
+        views["means2d"][1],
+        views["conics"][1],
+        views["colors"][1],
+        opac_leaf.t(),
+        scene["W"],
+        scene["H"],
+        scene["tile_size"],
+        scene["isect_offsets"].transpose(1, 2).contiguous().transpose(1, 2),
+        ids_big[:, 0],
         backgrounds=views["backgrounds"][1],
     )
     torch.testing.assert_close(out[0], ref_c, rtol=0, atol=0)
@@ -469,10 +547,18 @@ def test_int64_index_tensors_are_accepted():
 
 def _bad_call(**overrides):
     scene = make_scene(seed=0, C=2, N=6, W=12, H=10, tile_size=4)
-    kw = dict(means2d=scene["means2d"], conics=scene["conics"], colors=scene["colors"],
-              opacities=scene["opacities"], image_width=12, image_height=10, tile_size=4,
-              isect_offsets=scene["isect_offsets"], flatten_ids=scene["flatten_ids"],
-              backgrounds=scene["backgrounds"])
+    kw = dict(
+        means2d=scene["means2d"],
+        conics=scene["conics"],
+        colors=scene["colors"],
+        opacities=scene["opacities"],
+        image_width=12,
+        image_height=10,
+        tile_size=4,
+        isect_offsets=scene["isect_offsets"],
+        flatten_ids=scene["flatten_ids"],
+        backgrounds=scene["backgrounds"],
+    )
     if isinstance(overrides.get("flatten_ids"), str):
         overrides["flatten_ids"] = scene["flatten_ids"].clone()
         overrides["flatten_ids"][-1] = 12
@@ -522,8 +608,9 @@ def test_missing_compiler_gives_clear_message(tmp_path):
     )
     env = dict(os.environ, CXX="/nonexistent", TORCH_EXTENSIONS_DIR=str(tmp_path / "ext"))
     env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True,
-                          timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120
+    )
     assert proc.returncode == 0, proc.stderr
     assert "AVAILABLE False" in proc.stdout and "AGAIN False" in proc.stdout
     assert "ERROR no C++ compiler found (set CXX or install g++)" in proc.stdout

@@ -164,7 +164,11 @@ def test_sharp_scene_builds_no_degradation_model(scenes, tmp_path):
     run = InProcessTrainer(scenes["sharp"], tmp_path)
     model = run.model
     assert all(p.is_sharp for p in model.degradation.profiles)
-    assert model.degradation.blur_field is None and model.degradation.resolution_model is None and model.degradation.hpko is None
+    assert (
+        model.degradation.blur_field is None
+        and model.degradation.resolution_model is None
+        and model.degradation.hpko is None
+    )
     assert not any(k.startswith("degradation.") for k in model.state_dict())
     assert set(run.trainer.optimizers.parameters) & {"blur_field", "resolution_model"} == set()
     run.train(4)
@@ -191,7 +195,9 @@ def test_mixres_scene_uses_the_resolution_model_not_the_blur_field(scenes, tmp_p
     ran_on = sorted(views[0] for views, _, _ in calls)
     assert ran_on == sorted(i for i, f in enumerate(factors) if f > 1)
     assert all(f == [float(factors[v[0]])] for v, _, f in calls)  # num_downscales 0: the full factor
-    assert not torch.equal(model.degradation.resolution_model.residual.detach(), residual_before)  # the residual is trained
+    assert not torch.equal(
+        model.degradation.resolution_model.residual.detach(), residual_before
+    )  # the residual is trained
 
 
 # -- model level: profiles -> modules, HPKO scale, viewer outputs --------------------------------------------------
@@ -253,7 +259,9 @@ def test_a_blur_of_unknown_kind_gets_the_field_and_the_lens_only_when_asked():
         ([{**r, "effects": {"defocus": dict(estimated)}} for r in unknown_kind], False, True),  # estimated: defocus
         ([{**r, "effects": {"motion": {}, "defocus": {}}} for r in unknown_kind], False, True),  # both, recorded
     ):
-        model = build({"degradations": degradations}, degradation_model=DegradationConfig(thin_lens_for_unknown_kind=ask))
+        model = build(
+            {"degradations": degradations}, degradation_model=DegradationConfig(thin_lens_for_unknown_kind=ask)
+        )
         assert model.degradation.blur_field is not None and model.degradation.blur_field.uses_depth
         assert (model.degradation.thin_lens is not None) == lens, (degradations[0]["effects"], ask)
         plan = model.degradation.plan(0, 1, step=10**6)  # past the field's warm-up
@@ -400,7 +408,9 @@ def test_camera_shake_runs_on_views_that_may_be_shaken_and_learns():
     recs = records("motion", 1) + records("defocus", 1) + records("sharp", 1)
     recs.append({"split": "train", "degraded": True, "source": "estimated",
                  "effects": {"motion": dict(estimated), "defocus": dict(estimated)}})  # fmt: skip
-    model = build({"degradations": recs}, num_downscales=0, degradation_model=DegradationConfig(camera_shake=True, warmup=0))
+    model = build(
+        {"degradations": recs}, num_downscales=0, degradation_model=DegradationConfig(camera_shake=True, warmup=0)
+    )
     shake = model.degradation.camera_shake
     assert shake is not None and model.get_param_groups()["blur_shake"] == [shake.coefficients]
     assert [model.degradation.plan(i, 1, step=10).shake for i in range(4)] == [True, False, False, True]
@@ -453,7 +463,9 @@ def test_a_checkpoint_from_before_the_degradation_model_loads():
 @pytest.mark.parametrize("mode, kind", [("full", "motion"), ("view", "motion"), ("view", "defocus")])
 def test_eval_rgb_is_the_sharp_render_and_viewer_outputs_are_added(mode, kind):
     model = build({"degradations": records(kind)}, blur_field=BlurFieldConfig(mode=mode))
-    model.degradation.set_train_camera_centres(torch.stack([look_from([2.0, 0.5, 1.0]), look_from([-2.0, 0.5, 1.0])] * 2))
+    model.degradation.set_train_camera_centres(
+        torch.stack([look_from([2.0, 0.5, 1.0]), look_from([-2.0, 0.5, 1.0])] * 2)
+    )
     camera = make_camera(look_from([-1.9, 0.5, 1.1]), width=64, height=48)
     model.eval()
     outputs = model.get_outputs_for_camera(camera)

@@ -15,10 +15,10 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.models.splatfacto import SH2RGB
 
-from gsmsdr_ns.plugin.checkpoint_io import checkpoint_safe_globals
-from gsmsdr_ns.plugin.lpips import LPIPSUnavailable, lpips_backbone_cache_path
 from gsmsdr_ns.plugin.cameras import intrinsics_at_scale, viewmats_from_camera_to_worlds
+from gsmsdr_ns.plugin.checkpoint_io import checkpoint_safe_globals
 from gsmsdr_ns.plugin.finite_check import NonFiniteLossError
+from gsmsdr_ns.plugin.lpips import LPIPSUnavailable, lpips_backbone_cache_path
 from gsmsdr_ns.plugin.model import GSMSDRModelConfig, GSMSDRWarning
 
 W, H = 32, 24

@@ -24,8 +24,9 @@ from gsmsdr_ns.plugin.pose_alignment import (
 
 
 def _load(run: TrainedRun):
-    import gsmsdr_ns.plugin  # noqa: F401
     from nerfstudio.utils.eval_utils import eval_setup
+
+    import gsmsdr_ns.plugin  # noqa: F401
 
     return eval_setup(run.config)[1]
 
@@ -71,8 +72,9 @@ def test_alignment_recovers_a_perturbed_pose_from_the_models_own_render(trained_
     relative = found[:, :3].T @ true_pose[:, :3]
     angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(torch.trace(relative)) - 1.0) / 2.0))))
     offset = float((found[:, 3] - true_pose[:, 3]).norm())
-    print(f"rotation error {angle:.3f} deg (from 0.5), "
-          f"centre error {offset / diameter:.4%} of the trajectory (from 1%)")
+    print(
+        f"rotation error {angle:.3f} deg (from 0.5), centre error {offset / diameter:.4%} of the trajectory (from 1%)"
+    )
     assert angle < 0.25
     assert offset < 0.005 * diameter
 

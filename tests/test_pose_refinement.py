@@ -8,7 +8,6 @@ import json
 from pathlib import Path
 
 import pytest
-
 from conftest import cpu_trainer_config
 
 SHARP_VIEWS = ("frame_00001.png", "frame_00003.png")
@@ -54,4 +53,3 @@ def test_only_degraded_views_have_their_poses_refined(scene, tmp_path):
 def test_all_views_are_refined_on_request(scene, tmp_path):
     moved = _pose_adjustments(scene, tmp_path / "all", "all")
     assert all(amount > 0.0 for amount in moved.values()), moved
-

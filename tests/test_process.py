@@ -12,19 +12,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import TRAIN_FLAGS, run_cli, shared_fern
 
-from conftest import TRAIN_FLAGS, run_cli
 from gsmsdr_ns.bench.sfm import llff_cameras_opencv, pose_errors
+from gsmsdr_ns.data.layout import detect_layout
 from gsmsdr_ns.io.colmap import read_colmap
 from gsmsdr_ns.io.errors import InputError, InputWarning
 from gsmsdr_ns.io.images import list_images, read_image, write_image
-from gsmsdr_ns.data.layout import detect_layout
 from gsmsdr_ns.process import ProcessConfig, RegistrationError, choose_matching, process_photos
 from gsmsdr_ns.process.cli import parse
-from conftest import shared_fern
 
 FERN = shared_fern()
 FERN_IMAGES = FERN / "images_8"
+
 
 @pytest.fixture(scope="module")
 def fern_scene(tmp_path_factory: pytest.TempPathFactory):
@@ -237,14 +237,19 @@ def test_copies_of_a_photo_are_found_and_different_photos_are_not(tmp_path: Path
 
     folder = _copies_of_fern(tmp_path / "photos")
     names = list_images(folder)
-    assert find_duplicates(folder, names) == {"image001_reencoded.jpg": "image001.png",
-                                              "small_copy.png": "image002.png", "zz_byte_copy.png": "image000.png"}
+    assert find_duplicates(folder, names) == {
+        "image001_reencoded.jpg": "image001.png",
+        "small_copy.png": "image002.png",
+        "zz_byte_copy.png": "image000.png",
+    }
     assert find_duplicates(FERN_IMAGES, list_images(FERN_IMAGES)) == {}  # 20 photos of one scene, all different
 
 
 def test_gsmsdr_process_leaves_copies_out_so_none_becomes_a_test_view(tmp_path: Path):
     folder = _copies_of_fern(tmp_path / "photos")
-    with pytest.warns(InputWarning, match=r"left out 3 photo\(s\) that copy another one.*zz_byte_copy.png \(= image000"):
+    with pytest.warns(
+        InputWarning, match=r"left out 3 photo\(s\) that copy another one.*zz_byte_copy.png \(= image000"
+    ):
         result = process_photos(folder, tmp_path / "scene", ProcessConfig(hold=3))
     assert result.duplicates == {"image001_reencoded.jpg": "image001.png", "small_copy.png": "image002.png",
                                  "zz_byte_copy.png": "image000.png"}  # fmt: skip

@@ -125,8 +125,9 @@ def test_backends_agree_on_values_and_gradients(backend):
 
     def run(which):
         params = [t.detach().clone().requires_grad_(True) for t in leaves]
-        img, alpha, meta = rasterization(*params, viewmats.float(), Ks.float(), W, H, packed=False,
-                                         render_mode="RGB+ED", cpu_backend=which)
+        img, alpha, meta = rasterization(
+            *params, viewmats.float(), Ks.float(), W, H, packed=False, render_mode="RGB+ED", cpu_backend=which
+        )
         out = torch.cat([img[..., :3], alpha], -1)
         grads = torch.autograd.grad((out * upstream).sum(), params)
         return out.detach(), img[..., 3].detach(), grads
@@ -146,8 +147,20 @@ def test_gradcheck_float64(backend):
     opac = torch.full_like(opac, 0.6)  # clear of the 1/255 skip and the 0.999 clamp
 
     def render(m, q, s, o, c):
-        img, alpha, _ = rasterization(m, q, s, o, c, viewmats[:1], Ks[:1], W, H, packed=False, cpu_backend=backend,
-                                      backgrounds=torch.full((1, 3), 0.3, dtype=torch.float64))
+        img, alpha, _ = rasterization(
+            m,
+            q,
+            s,
+            o,
+            c,
+            viewmats[:1],
+            Ks[:1],
+            W,
+            H,
+            packed=False,
+            cpu_backend=backend,
+            backgrounds=torch.full((1, 3), 0.3, dtype=torch.float64),
+        )
         return img, alpha
 
     inputs = tuple(t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors))
@@ -158,7 +171,7 @@ def test_gradcheck_float64(backend):
 def test_projection_matches_gsplat_torch_reference():
     from gsplat.cuda._torch_impl import _fully_fused_projection
 
-    means, quats, scales, *_ , viewmats, Ks, W, H = random_scene(300, 5, dtype=torch.float32, spread=4.0)
+    means, quats, scales, *_, viewmats, Ks, W, H = random_scene(300, 5, dtype=torch.float32, spread=4.0)
     covars = covariance_3d(quats, scales)
     ours = project_gaussians(means, covars, viewmats, Ks, W, H, calc_compensations=True)
     radii, means2d, depths, conics, comp = _fully_fused_projection(
@@ -184,7 +197,7 @@ def test_sh_matches_gsplat_torch_reference():
 
 
 def test_tile_lists_match_brute_force_overlap():
-    means, quats, scales, *_ , viewmats, Ks, W, H = random_scene(150, 9, width=80, height=56, dtype=torch.float32)
+    means, quats, scales, *_, viewmats, Ks, W, H = random_scene(150, 9, width=80, height=56, dtype=torch.float32)
     proj = project_gaussians(means, covariance_3d(quats, scales), viewmats, Ks, W, H)
     ts, tw, th = 16, 5, 4
     counts, isect_ids, flatten_ids = isect_tiles(proj.means2d, proj.radii, proj.depths, ts, tw, th)
@@ -224,9 +237,20 @@ def test_meta_drives_default_strategy_on_cpu(backend):
     optimizers = {k: torch.optim.Adam([p], lr=1e-3) for k, p in params.items()}
     strategy = DefaultStrategy(refine_start_iter=0, refine_every=1, grow_grad2d=0.0, absgrad=True, verbose=False)
     state = strategy.initialize_state()
-    img, alpha, info = rasterization(params["means"], params["quats"], torch.exp(params["scales"]),
-                                     torch.sigmoid(params["opacities"]), params["colors"], viewmats[:1].float(),
-                                     Ks[:1].float(), W, H, packed=False, absgrad=True, cpu_backend=backend)
+    img, alpha, info = rasterization(
+        params["means"],
+        params["quats"],
+        torch.exp(params["scales"]),
+        torch.sigmoid(params["opacities"]),
+        params["colors"],
+        viewmats[:1].float(),
+        Ks[:1].float(),
+        W,
+        H,
+        packed=False,
+        absgrad=True,
+        cpu_backend=backend,
+    )
     strategy.step_pre_backward(params, optimizers, state, 1, info)
     (img - 0.5).square().sum().backward()
     assert info["means2d"].grad is not None
@@ -253,15 +277,41 @@ def test_sh_colors_and_render_modes():
     means, quats, scales, opac, _, viewmats, Ks, W, H = random_scene(40, 1, dtype=torch.float32)
     sh = torch.zeros(40, 16, 3)
     sh[:, 0] = 0.3
-    img, alpha, meta = rasterization(means, quats, scales, opac, sh, viewmats, Ks, W, H, sh_degree=3, packed=False,
-                                     render_mode="RGB+D", cpu_backend="torch")
+    img, alpha, meta = rasterization(
+        means,
+        quats,
+        scales,
+        opac,
+        sh,
+        viewmats,
+        Ks,
+        W,
+        H,
+        sh_degree=3,
+        packed=False,
+        render_mode="RGB+D",
+        cpu_backend="torch",
+    )
     # a constant DC term gives a constant colour 0.3 * C0 + 0.5 wherever the image is opaque
     expected = 0.3 * 0.28209479177387814 + 0.5
     rgb = img[..., :3] / alpha.clamp_min(1e-6)
     solid = alpha[..., 0] > 0.5
     torch.testing.assert_close(rgb[solid], torch.full_like(rgb[solid], expected), atol=1e-4, rtol=0)
-    d, _, _ = rasterization(means, quats, scales, opac, sh, viewmats, Ks, W, H, sh_degree=3, packed=False,
-                            render_mode="ED", cpu_backend="torch")
+    d, _, _ = rasterization(
+        means,
+        quats,
+        scales,
+        opac,
+        sh,
+        viewmats,
+        Ks,
+        W,
+        H,
+        sh_degree=3,
+        packed=False,
+        render_mode="ED",
+        cpu_backend="torch",
+    )
     depths = meta["depths"][meta["radii"] > 0]
     ed = d[..., 0][solid]
     assert ed.min() >= depths.min() - 1e-4 and ed.max() <= depths.max() + 1e-4

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import pytest
 import torch
+from test_render import BACKENDS, random_scene
 
 from gsmsdr_ns.render import rasterization
-from test_render import BACKENDS, random_scene
 
 
 def _render(packed: bool, backend: str, seed: int = 3):

@@ -22,8 +22,8 @@ from stability_common import (  # noqa: F401  (single_thread: autouse fixture)
 )
 
 from gsmsdr_ns.blur.degradation_config import DegradationConfig
-from gsmsdr_ns.blur.losses import mask_regulariser
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
+from gsmsdr_ns.blur.losses import mask_regulariser
 from gsmsdr_ns.render import rasterization
 
 
@@ -59,7 +59,9 @@ def run_autocast_checks(device="cuda", dtype: Optional[torch.dtype] = None) -> D
                 with torch.autocast(device.type, dtype=dtype):
                     kernels, mask = field(render, depth, torch.tensor([1], device=device), scale)
                     degraded = BlurField.degrade(render, kernels, mask)
-                    loss = (degraded.float() - 0.5).abs().mean() + mask_regulariser(mask, DegradationConfig().mask_reg_weight).float()
+                    loss = (degraded.float() - 0.5).abs().mean() + mask_regulariser(
+                        mask, DegradationConfig().mask_reg_weight
+                    ).float()
                 loss.backward()
                 assert all_finite(kernels) and all_finite(mask) and all_finite(degraded), (mode, scale, H, W)
                 assert all_finite(render.grad), (mode, scale, H, W)

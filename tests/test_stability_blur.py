@@ -19,10 +19,10 @@ from stability_common import (  # noqa: F401  (single_thread: autouse fixture)
 )
 
 from gsmsdr_ns.blur.degradation_config import DegradationConfig
-from gsmsdr_ns.blur.losses import mask_regulariser
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
-from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels, apply_pixel_kernels_unfold
+from gsmsdr_ns.blur.losses import mask_regulariser
 from gsmsdr_ns.blur.profile import ResolutionLossModel
+from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels, apply_pixel_kernels_unfold
 
 
 @settings(max_examples=30, **SETTINGS)
@@ -72,7 +72,6 @@ def test_unnormalised_weights_of_1e4(backend):
     torch.testing.assert_close(out, apply_pixel_kernels_unfold(image.detach(), weights.detach()))
 
 
-
 @pytest.mark.parametrize("mode", ["full", "msd_only", "re_only", "view"])
 def test_blur_field_saturated_heads_on_tiny_and_constant_images(mode):
     """The MAAN / BAGS feature networks and the HPKO heads on 1x1, one-row and one-column renders of black, white
@@ -88,7 +87,7 @@ def test_blur_field_saturated_heads_on_tiny_and_constant_images(mode):
             K = field.kernel_size(scale)
             hot = (K * K) // 2 + 1  # one pixel to the right: the output is the render shifted left (border clamped)
             saturate_heads(field, scale, hot, mask_sign)
-            for (H, W) in sizes:
+            for H, W in sizes:
                 for kind, value in renders.items():
                     render = torch.full((1, 3, H, W), value, requires_grad=True)
                     depth = torch.full((1, 1, H, W), 3.0)  # constant depth: normalises to zeros
@@ -112,7 +111,7 @@ def test_resolution_loss_model_on_tiny_and_constant_images(factor):
     model = ResolutionLossModel(num_views=2, kernel_size=3)
     with torch.no_grad():
         model.residual.normal_(0.0, 10.0)  # a far-from-identity residual kernel
-    for (H, W) in [(1, 1), (1, 9), (9, 1), (6, 5)]:
+    for H, W in [(1, 1), (1, 9), (9, 1), (6, 5)]:
         for value in (0.0, 1.0, 0.3):
             render = torch.full((2, 3, H, W), value, requires_grad=True)
             out = model(render, [factor, 1.0], torch.tensor([0, 1]))
@@ -120,4 +119,3 @@ def test_resolution_loss_model_on_tiny_and_constant_images(factor):
             (out - 0.5).abs().mean().backward()
             assert all_finite(out) and all_finite(render.grad) and all_finite(model.residual.grad), (H, W, value)
             torch.testing.assert_close(out, render.detach())  # residual kernels sum to 1: constants pass through
-

@@ -23,7 +23,6 @@ from stability_common import (  # noqa: F401  (single_thread: autouse fixture)
 
 from gsmsdr_ns.render import rasterization
 
-
 LRS = {"means": 1.6e-4, "scales": 5e-3, "quats": 1e-3, "opacities": 5e-2, "colors": 2.5e-3}  # splatfacto's
 TARGETS = {
     "black": lambda h, w, g: torch.zeros(h, w, 3),
@@ -31,7 +30,6 @@ TARGETS = {
     "constant": lambda h, w, g: torch.full((h, w, 3), 0.37),
     "random": lambda h, w, g: torch.rand(h, w, 3, generator=g),
 }
-
 
 
 def check_finite_state(params, optimizers, strategy_state, what: str) -> None:
@@ -94,4 +92,3 @@ def test_adam_lr_spike_and_densification_keep_everything_finite(backend, absgrad
         check_finite_state(params, optimizers, state, f"step {step} after refinement")
         assert all(len(p) == len(params["means"]) for p in params.values())
     assert len(params["means"]) > 0
-

@@ -25,7 +25,6 @@ from stability_common import (  # noqa: F401  (single_thread: autouse fixture)
 
 from gsmsdr_ns.render import rasterization
 
-
 SIZES = [(1, 1), (1, 23), (23, 1), (16, 12), (37, 19)]  # (width, height): one pixel, one row / column, tiles
 
 
@@ -190,4 +189,3 @@ def test_four_thousand_gaussians_at_one_pixel(backend, opacity):
     assert 0.999 - 1e-6 <= float(alphas.max()) < 1.0
     other = render_with_grads(scene, 16, 16, "torch" if backend == "cpp" else "cpp", render_mode="RGB+ED")
     torch.testing.assert_close(colours, other[0], atol=1e-4, rtol=1e-4)
-

@@ -11,9 +11,8 @@ from typing import List
 
 import pytest
 import torch
-from stability_common import all_finite, single_thread  # noqa: F401  (single_thread: autouse fixture)
-
 from conftest import cpu_trainer_config
+from stability_common import all_finite, single_thread  # noqa: F401  (single_thread: autouse fixture)
 
 
 @pytest.fixture(scope="module")
@@ -28,9 +27,9 @@ def tiny_training_scene(tmp_path_factory) -> Path:
 def trainer_factory(tiny_training_scene, tmp_path):
     """Builds a nerfstudio Trainer for ``gsmsdr`` through its TrainerConfig (what ``ns-train gsmsdr`` runs) on the
     tiny scene: CPU, images cached as float32 (so a NaN can be written into one), blur field on from step 0."""
-    import gsmsdr_ns.plugin.method_config  # noqa: F401  (our configs load before nerfstudio's writer, below)
-
     from nerfstudio.utils import writer  # after the configs: importing it first is a circular import
+
+    import gsmsdr_ns.plugin.method_config  # noqa: F401  (our configs load before nerfstudio's writer, below)
 
     saved_writers = list(writer.EVENT_WRITERS)
 
@@ -62,7 +61,9 @@ def test_trainer_stops_on_a_nan_naming_the_step(trainer_factory, poison):
 
     trainer = trainer_factory(max_steps=12)
     model = trainer.pipeline.model
-    assert model.degradation.blur_field is not None, "the tiny scene should train the blur field (nothing known about it)"
+    assert model.degradation.blur_field is not None, (
+        "the tiny scene should train the blur field (nothing known about it)"
+    )
     bad_step = 5
 
     def inject(step: int) -> None:
@@ -123,4 +124,3 @@ def test_trainer_survives_a_learning_rate_spike(trainer_factory):
     assert float(model.scales.max()) > 20.0, "the spike did not reach the scales: the test lost its point"
     moved = [not torch.equal(a, b) for a, b in zip(blur_before, model.degradation.blur_field.parameters())]
     assert any(moved), "the blur field was not trained: the spike did not go through the degradation path"
-

@@ -25,11 +25,11 @@ from typing import Dict, List, Optional, Tuple
 
 import pytest
 import torch
+from conftest import cpu_trainer_config
 from stability_common import single_thread  # noqa: F401  (single_thread: autouse fixture)
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from gsmsdr_ns.plugin.finite_check import NonFiniteLossError, NonFiniteRecorder
-from conftest import cpu_trainer_config
 
 MAX_OPS_PER_BLURRED_STEP = 3700
 """Bound on the aten operators one blurred training step issues on the CPU (forward with the thin lens and the blur
@@ -140,9 +140,9 @@ def sync_scene(tmp_path_factory) -> Path:
 def build_trainer(sync_scene, tmp_path):
     """A nerfstudio Trainer for ``gsmsdr`` on the tiny scene, built through its TrainerConfig (what ``ns-train``
     runs): CPU, nothing known about the images (thin lens + blur field on every step from step 0), refinement off."""
-    import gsmsdr_ns.plugin.method_config  # noqa: F401  (our configs load before nerfstudio's writer, below)
-
     from nerfstudio.utils import writer  # after the configs: importing it first is a circular import
+
+    import gsmsdr_ns.plugin.method_config  # noqa: F401  (our configs load before nerfstudio's writer, below)
 
     saved_writers = list(writer.EVENT_WRITERS)
 

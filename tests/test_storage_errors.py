@@ -279,12 +279,31 @@ def test_every_writer_on_a_full_disk_says_so_in_one_line_and_leaves_nothing(tiny
         "gsmsdr-estimate": ["--scene", scene],
         "gsmsdr-eval": ["--load-config", trained_run.config, "--output-path", out / "eval.json", "--no-align-poses"],
         "gsmsdr-export": ["--load-config", trained_run.config, "--output", out / "scene.ply"],
-        "gsmsdr-bench": ["step", "--data", tiny_scene, "--methods", "plain", "--warmup", "1", "--steps", "1",
-                         "--out", out / "step", "--work-dir", tmp_path / "bench-work"],
+        "gsmsdr-bench": [
+            "step",
+            "--data",
+            tiny_scene,
+            "--methods",
+            "plain",
+            "--warmup",
+            "1",
+            "--steps",
+            "1",
+            "--out",
+            out / "step",
+            "--work-dir",
+            tmp_path / "bench-work",
+        ],
     }
     procs = {
-        tool: subprocess.Popen([str(BIN / tool), *map(str, args)], cwd=tmp_path, env=ENV, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)  # fmt: skip
+        tool: subprocess.Popen(
+            [str(BIN / tool), *map(str, args)],
+            cwd=tmp_path,
+            env=ENV,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )  # fmt: skip
         for tool, args in commands.items()
     }
     for tool, proc in procs.items():

@@ -12,10 +12,10 @@ import pycolmap
 import pytest
 from PIL import Image
 
-from gsmsdr_ns.synth import generate as gen_mod
-from gsmsdr_ns.synth.cameras import intrinsics, orbit_cameras, project, world_to_camera
 from gsmsdr_ns.degrade.synth_cli import parse
 from gsmsdr_ns.io.colmap import read_colmap
+from gsmsdr_ns.synth import generate as gen_mod
+from gsmsdr_ns.synth.cameras import intrinsics, orbit_cameras, project, world_to_camera
 from gsmsdr_ns.synth.config import SynthSceneConfig, config_from_dict, load_preset
 from gsmsdr_ns.synth.generate import generate_scene
 from gsmsdr_ns.synth.geometry import Sphere

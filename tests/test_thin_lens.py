@@ -11,14 +11,14 @@ import pytest
 import torch
 
 from gsmsdr_ns.blur.defocus import ThinLensDefocus, lens_window, thin_lens_radius
-from gsmsdr_ns.ops.disk_kernels import occluding_disk_kernels, soft_disk_kernels
 from gsmsdr_ns.blur.degradation_config import DegradationConfig
 from gsmsdr_ns.blur.degradation_model import DegradationModel
-from gsmsdr_ns.blur.profile import DegradationProfile
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
-from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels
-from gsmsdr_ns.degrade.kernels import defocus_radius
 from gsmsdr_ns.blur.preview import kernel_spread
+from gsmsdr_ns.blur.profile import DegradationProfile
+from gsmsdr_ns.degrade.kernels import defocus_radius
+from gsmsdr_ns.ops.disk_kernels import occluding_disk_kernels, soft_disk_kernels
+from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels
 
 
 def test_soft_disk_kernels_sum_to_one_and_grow_with_the_radius():
@@ -143,9 +143,7 @@ def test_kernel_window_follows_the_largest_disk():
     assert k.shape[1] == 17 * 17  # capped at the scale's kernel
     torch.testing.assert_close(k.sum(1), torch.ones(1, 32, 40))
     half = lens(depth, torch.tensor([0]), 17, pixel_scale=0.5)  # same lens at half resolution: half the radius
-    torch.testing.assert_close(
-        lens.radius(depth, torch.tensor([0]), 0.5), 0.5 * lens.radius(depth, torch.tensor([0]))
-    )
+    torch.testing.assert_close(lens.radius(depth, torch.tensor([0]), 0.5), 0.5 * lens.radius(depth, torch.tensor([0])))
     assert half.shape[1] == 17 * 17
 
 

@@ -158,9 +158,11 @@ class StepBench:
                  for d in self.data for m in self.methods]  # fmt: skip
         rows = run_step_cost(specs, self.work_dir, log=print)
         command = "gsmsdr-bench " + " ".join(shlex.quote(a) for a in _invocation_args())
-        header = (f"# Training-step cost per method\n\nCommand: `{command}`\n\nMachine: {describe_machine(machine_info())}"
-                  f"\n\n{self.warmup} untimed warm-up steps, then {self.steps} timed steps per method at full "
-                  "resolution with the blur field on from step 0; the device synchronised only around the timed steps.")
+        header = (
+            f"# Training-step cost per method\n\nCommand: `{command}`\n\nMachine: {describe_machine(machine_info())}"
+            f"\n\n{self.warmup} untimed warm-up steps, then {self.steps} timed steps per method at full "
+            "resolution with the blur field on from step 0; the device synchronised only around the timed steps."
+        )
         print(format_table(rows, header))
         print("wrote " + ", ".join(str(p) for p in write_results(self.out, rows, header)))
 
@@ -217,9 +219,11 @@ class SuiteBench:
             raise SystemExit(130) from None
         print(main_tables((out / "results.md").read_text(encoding="utf8")))
         copied = f", {len(outcome.copied)} copied from a run with the same training" if outcome.copied else ""
-        print(f"suite {suite.name}: {len(outcome.trained)} runs trained, {len(outcome.reused)} reused, "
-              f"{len(outcome.failed)} failed, {len(outcome.skipped)} skipped{copied} in "
-              f"{time.perf_counter() - started:.0f} s")
+        print(
+            f"suite {suite.name}: {len(outcome.trained)} runs trained, {len(outcome.reused)} reused, "
+            f"{len(outcome.failed)} failed, {len(outcome.skipped)} skipped{copied} in "
+            f"{time.perf_counter() - started:.0f} s"
+        )
         print("wrote " + ", ".join(str(p) for p in outcome.outputs))
         if self.publish is not None:
             print("published " + ", ".join(str(p) for p in publish_outputs(out, self.publish, outcome.outputs)))
@@ -317,6 +321,7 @@ def entrypoint(argv: Optional[Sequence[str]] = None) -> None:
 
     # The suite prints what it kept itself and exits 130; this line covers the other benchmarks and the start-up.
     interrupted = "interrupted; tables were not printed, a suite's finished runs are kept in its runs/ folder"
+
     def parse():
         return tyro.extras.subcommand_cli_from_dict(SUBCOMMANDS, args=map_quick(raw), description=description)
 

@@ -43,9 +43,7 @@ def rasterize_dense(
     visible = torch.nonzero(radii > 0).squeeze(-1)
     order = visible[torch.argsort(depths[visible])]
     m, con, col, opa = means2d[order], conics[order], colors[order], opacities[order]
-    ys, xs = torch.meshgrid(
-        torch.arange(height, dtype=m.dtype), torch.arange(width, dtype=m.dtype), indexing="ij"
-    )
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=m.dtype), torch.arange(width, dtype=m.dtype), indexing="ij")
     pix = torch.stack([xs, ys], dim=-1).reshape(-1, 2) + 0.5
     outs = [
         checkpoint(_pixel_chunk, pix[i : i + chunk], m, con, col, opa, use_reentrant=False)

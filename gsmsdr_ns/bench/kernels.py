@@ -79,9 +79,7 @@ def time_impls(
             f, b = _forward_backward(fn, image, weights, grad)
             if r > 0:
                 runs[name].append((f, b))
-    return {
-        name: (statistics.median(f for f, _ in v), statistics.median(b for _, b in v)) for name, v in runs.items()
-    }
+    return {name: (statistics.median(f for f, _ in v), statistics.median(b for _, b in v)) for name, v in runs.items()}
 
 
 def _peak_memory_child(impl: str, K: int, height: int, width: int, channels: int, batch: int) -> Dict:
@@ -102,8 +100,14 @@ def measure_peak_memory(
     impl: str, K: int, height: int = 400, width: int = 600, channels: int = 3, batch: int = 1
 ) -> Dict:
     """Extra peak resident memory of one forward + backward, measured in a fresh interpreter (see module doc)."""
-    cmd = [sys.executable, "-m", "gsmsdr_ns.bench.kernels", "--peak-memory", impl, *map(str, (K, height, width,
-                                                                                               channels, batch))]
+    cmd = [
+        sys.executable,
+        "-m",
+        "gsmsdr_ns.bench.kernels",
+        "--peak-memory",
+        impl,
+        *map(str, (K, height, width, channels, batch)),
+    ]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
     if proc.returncode != 0:

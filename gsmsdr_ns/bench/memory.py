@@ -49,7 +49,7 @@ _OOM_MARKERS = ("can't allocate memory", "out of memory", "std::bad_alloc", "Mem
 
 
 def parse_size(text: str) -> Tuple[int, int]:
-    """"WIDTHxHEIGHT" -> (width, height)."""
+    """ "WIDTHxHEIGHT" -> (width, height)."""
     try:
         width, height = (int(v) for v in text.lower().split("x"))
     except ValueError:
@@ -89,7 +89,9 @@ def parse_overrides(items: Sequence[str]) -> Dict[str, Any]:
         if not sep or not key:
             raise ValueError(f"--set: expected key=value, got {item!r}")
         if key not in names:
-            raise ValueError(f"--set {item!r}: no blur-field or degradation option {key!r}; options: {', '.join(names)}")
+            raise ValueError(
+                f"--set {item!r}: no blur-field or degradation option {key!r}; options: {', '.join(names)}"
+            )
         out[key] = _literal(value.strip())
     return out
 
@@ -141,7 +143,9 @@ def _inputs(width: int, height: int, seed: int):
     return render, depth, grad
 
 
-def _step(field, lens, scale: int, linear_light: bool, lens_impl: str, K: int, render, depth, grad) -> Tuple[float, float]:
+def _step(
+    field, lens, scale: int, linear_light: bool, lens_impl: str, K: int, render, depth, grad
+) -> Tuple[float, float]:
     """Forward (lens, then field) and backward; (forward s, backward s)."""
     import torch
 

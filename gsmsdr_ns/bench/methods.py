@@ -133,50 +133,117 @@ METHODS: Dict[str, MethodSpec] = {
     m.name: m
     for m in (
         _method("plain", "plain (3DGS)", "plain", "plain Gaussians (degradation sharp) on the degraded images"),
-        MethodSpec("plain-poses", "plain + pose refinement", "plain", (), False,
-                   "plain Gaussians with nerfstudio's camera optimizer (SO3xR3) on every training view",
-                   pose_refinement="all"),  # fmt: skip
+        MethodSpec(
+            "plain-poses",
+            "plain + pose refinement",
+            "plain",
+            (),
+            False,
+            "plain Gaussians with nerfstudio's camera optimizer (SO3xR3) on every training view",
+            pose_refinement="all",
+        ),  # fmt: skip
         _method("msd-only", "MSD-only", "gsmsdr", "HPKO heads on BAGS' plain CNN (no GAKA/SAFM/MCA)", mode="msd_only"),
-        _method("re-only", "RE-only", "gsmsdr", "MAAN features, one full-resolution kernel scale (no HPKO)",
-                mode="re_only"),  # fmt: skip
+        _method(
+            "re-only", "RE-only", "gsmsdr", "MAAN features, one full-resolution kernel scale (no HPKO)", mode="re_only"
+        ),  # fmt: skip
         _method("full", "GS-MSDR (full)", "gsmsdr", "the gsmsdr preset: MAAN + HPKO, with per-view kernels"),
-        MethodSpec("full-poses", "GS-MSDR (full) + pose refinement", "gsmsdr", (), False,
-                   "full with nerfstudio's camera optimizer (SO3xR3) on the degraded views",
-                   pose_refinement="degraded"),  # fmt: skip
-        _method("full-per-pixel", "full, features at every pixel", "gsmsdr",
-                "full with the feature network at every pixel (feature_downsample 1, the paper's field)",
-                feature_downsample=1),  # fmt: skip
-        _method("full-uncentred", "GS-MSDR (full), kernels not centred", "gsmsdr",
-                "full without the kernel-centre regulariser (kernel_centre_weight 0)", kernel_centre_weight=0.0),
-        _method("full-lens-unknown", "GS-MSDR (full), thin lens on blur of unknown kind", "gsmsdr",
-                "full with the thin lens before the field on images whose kind of blur is unknown",
-                thin_lens_for_unknown_kind=True),  # fmt: skip
-        _method("full-paper-loss", "GS-MSDR (full), the paper's loss alone", "gsmsdr",
-                "full without the deconvolved residual loss (deconvolved_loss_weight 0)", deconvolved_loss_weight=0.0),
-        _method("full-margin", "GS-MSDR (full), render margin", "gsmsdr",
-                "full rendering the kernel's half-width beyond every border of a blurred view (render_margin)",
-                render_margin=True),  # fmt: skip
-        _method("full-shake", "GS-MSDR (full), camera shake paths", "gsmsdr",
-                "full-margin with a learnt camera rotation path before the field on views that may be shaken",
-                render_margin=True, camera_shake=True),  # fmt: skip
-        MethodSpec("full-true", "GS-MSDR (full, true records)", "gsmsdr", (), False,
-                   "full with the true degradation records of a real-photo scene (elsewhere the same as full)",
-                   true_records=True),  # fmt: skip
-        _method("-view", "-view kernels", "gsmsdr", "full without per-view kernels (the paper's blur field)",
-                view_kernels=False),  # fmt: skip
-        _method("view", "per-view kernels (mode view)", "gsmsdr",
-                "one kernel per training view (mask 1), no feature network (fast)", mode="view"),  # fmt: skip
+        MethodSpec(
+            "full-poses",
+            "GS-MSDR (full) + pose refinement",
+            "gsmsdr",
+            (),
+            False,
+            "full with nerfstudio's camera optimizer (SO3xR3) on the degraded views",
+            pose_refinement="degraded",
+        ),  # fmt: skip
+        _method(
+            "full-per-pixel",
+            "full, features at every pixel",
+            "gsmsdr",
+            "full with the feature network at every pixel (feature_downsample 1, the paper's field)",
+            feature_downsample=1,
+        ),  # fmt: skip
+        _method(
+            "full-uncentred",
+            "GS-MSDR (full), kernels not centred",
+            "gsmsdr",
+            "full without the kernel-centre regulariser (kernel_centre_weight 0)",
+            kernel_centre_weight=0.0,
+        ),
+        _method(
+            "full-lens-unknown",
+            "GS-MSDR (full), thin lens on blur of unknown kind",
+            "gsmsdr",
+            "full with the thin lens before the field on images whose kind of blur is unknown",
+            thin_lens_for_unknown_kind=True,
+        ),  # fmt: skip
+        _method(
+            "full-paper-loss",
+            "GS-MSDR (full), the paper's loss alone",
+            "gsmsdr",
+            "full without the deconvolved residual loss (deconvolved_loss_weight 0)",
+            deconvolved_loss_weight=0.0,
+        ),
+        _method(
+            "full-margin",
+            "GS-MSDR (full), render margin",
+            "gsmsdr",
+            "full rendering the kernel's half-width beyond every border of a blurred view (render_margin)",
+            render_margin=True,
+        ),  # fmt: skip
+        _method(
+            "full-shake",
+            "GS-MSDR (full), camera shake paths",
+            "gsmsdr",
+            "full-margin with a learnt camera rotation path before the field on views that may be shaken",
+            render_margin=True,
+            camera_shake=True,
+        ),  # fmt: skip
+        MethodSpec(
+            "full-true",
+            "GS-MSDR (full, true records)",
+            "gsmsdr",
+            (),
+            False,
+            "full with the true degradation records of a real-photo scene (elsewhere the same as full)",
+            true_records=True,
+        ),  # fmt: skip
+        _method(
+            "-view",
+            "-view kernels",
+            "gsmsdr",
+            "full without per-view kernels (the paper's blur field)",
+            view_kernels=False,
+        ),  # fmt: skip
+        _method(
+            "view",
+            "per-view kernels (mode view)",
+            "gsmsdr",
+            "one kernel per training view (mask 1), no feature network (fast)",
+            mode="view",
+        ),  # fmt: skip
         _method("-gaka", "-GAKA", "gsmsdr", "full without Global-Aware Kernel Attention", gaka=False),
         _method("-safm", "-SAFM", "gsmsdr", "full without the Spatial Adaptive Fusion Module", safm=False),
         _method("-mca", "-MCA", "gsmsdr", "full without the Multi-modal Context Adapter", mca=False),
         _method("-rgbd", "-RGBD", "gsmsdr", "full with an RGB-only feature network (no depth input)", rgbd=False),
         _method("gsmsdr-lite", "gsmsdr-lite", "gsmsdr-lite", "the gsmsdr-lite preset (half-width blur field)"),
-        MethodSpec("sharp-degraded-poses", "sharp, degraded photos' poses (bound)", "sharp", (), True,
-                   "plain Gaussians on the sharp photos, posed and undistorted by the degraded photos' "
-                   "structure-from-motion (real-photo scenes; elsewhere the same as sharp)",
-                   degraded_poses=True),  # fmt: skip
-        _method("sharp", "sharp (upper bound)", "sharp", "plain Gaussians on the sharp images of the same scene",
-                sharp_data=True),  # fmt: skip
+        MethodSpec(
+            "sharp-degraded-poses",
+            "sharp, degraded photos' poses (bound)",
+            "sharp",
+            (),
+            True,
+            "plain Gaussians on the sharp photos, posed and undistorted by the degraded photos' "
+            "structure-from-motion (real-photo scenes; elsewhere the same as sharp)",
+            degraded_poses=True,
+        ),  # fmt: skip
+        _method(
+            "sharp",
+            "sharp (upper bound)",
+            "sharp",
+            "plain Gaussians on the sharp images of the same scene",
+            sharp_data=True,
+        ),  # fmt: skip
     )
 }
 """Suite method names -> what they train. Order = row order of the tables."""

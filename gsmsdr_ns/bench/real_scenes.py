@@ -363,8 +363,10 @@ def ensure_real_scene(bench_dir: Path, spec: RealSceneSpec, records: str = "esti
                                                     "spec": dataclasses.asdict(spec), "records": records,
                                                     "training_photos": photos, **facts})  # fmt: skip
     shown = "degraded photos" if photos == "degraded" else "sharp photos, posed by the degraded photos' model"
-    log(f"real scene: wrote {out} ({facts['views']} views: {shown}; {len(facts['test_views'])} sharp test views "
-        "registered into the degraded photos' model)")
+    log(
+        f"real scene: wrote {out} ({facts['views']} views: {shown}; {len(facts['test_views'])} sharp test views "
+        "registered into the degraded photos' model)"
+    )
     return out
 
 

@@ -136,8 +136,10 @@ def _header_lines(
                  + (f", {len(skipped)} skipped" if skipped else ""))  # fmt: skip
     shared = [r for r in records if r.get("same_training_as")]
     if shared:
-        lines.append(f"- {len(shared)} of them trained the same images with the same model, settings and seed as "
-                     "another run, which trained once for both (each such record names it in `same_training_as`)")
+        lines.append(
+            f"- {len(shared)} of them trained the same images with the same model, settings and seed as "
+            "another run, which trained once for both (each such record names it in `same_training_as`)"
+        )
     for scene in suite.scenes:
         lines.append(f"- scene `{scene.name}`: {scene.describe()}")
     sched = ", ".join(f"{k} {v}" for k, v in schedule_settings(suite.schedule_for(1)).items() if k != "steps")

@@ -46,8 +46,16 @@ def copied_record(suite: Suite, key: RunKey, source: Dict[str, Any]) -> Dict[str
     :func:`training_identity`: its numbers, under ``key``'s id, names and fingerprint, marked ``same_training_as``
     the source's id."""
     record = copy.deepcopy(source)
-    record.update(id=key.id, suite=suite.name, scene=key.scene, method=key.method, steps=key.steps, seed=key.seed,
-                  fingerprint=fingerprint(suite, key), same_training_as=source.get("same_training_as", source["id"]))
+    record.update(
+        id=key.id,
+        suite=suite.name,
+        scene=key.scene,
+        method=key.method,
+        steps=key.steps,
+        seed=key.seed,
+        fingerprint=fingerprint(suite, key),
+        same_training_as=source.get("same_training_as", source["id"]),
+    )
     if "fingerprint_without_estimate" in record:
         record["fingerprint_without_estimate"] = fingerprint(suite, key, estimate=False)
     return record
@@ -276,8 +284,14 @@ def run_suite(
     point that does not depend on timing."""
     import torch
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-    from rich.progress import TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     out = Path(out)
     (out / "runs").mkdir(parents=True, exist_ok=True)
@@ -301,6 +315,7 @@ def run_suite(
         copied.append(key.id)
         console.print(f"{key.id}: same training as {source.id} (same images, model, settings and seed): its record "
                       "is copied")  # fmt: skip
+
     lpips = None
     if suite.lpips and todo:
         lpips = make_lpips("cuda" if torch.cuda.is_available() else "cpu")

@@ -23,6 +23,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+
 def llff_cameras_opencv(poses_bounds: Path) -> Tuple[np.ndarray, np.ndarray]:
     """Camera centres [N, 3] and camera-to-world rotations [N, 3, 3] (OpenCV axes) from LLFF poses_bounds.npy."""
     from gsmsdr_ns.data.cameras import llff_to_opencv
@@ -204,8 +205,7 @@ def write_results(out: Path, rows: Sequence[SfmRow], photos: str, command: str) 
         f"- photos: `{photos}`; degraded rows: the photos posed once, degraded by the preset (the first photo stays "
         "sharp and is left out), the degraded photos alone processed again\n"
         "- errors: registered cameras against LLFF's `poses_bounds.npy` after a similarity alignment (largest over "
-        "the photos); SfM s: wall time of `process_photos`\n\n"
-        + format_table(rows) + "\n"
+        "the photos); SfM s: wall time of `process_photos`\n\n" + format_table(rows) + "\n"
     )
     Path(out).mkdir(parents=True, exist_ok=True)
     return write_text_atomic(Path(out) / "results.md", text)

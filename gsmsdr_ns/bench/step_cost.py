@@ -150,8 +150,11 @@ def run_step_cost(
 def format_table(rows: Sequence[Dict[str, object]], header: str = "") -> str:
     """A markdown table of :func:`run_step_cost` rows, under ``header``."""
     lines = [header, ""] if header else []
-    lines += ["| scene | size | records | method | ms/step | x first | peak MiB (timed) | peak MiB (run) | Gaussians "
-              "| views with a blur model |", "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    lines += [
+        "| scene | size | records | method | ms/step | x first | peak MiB (timed) | peak MiB (run) | Gaussians "
+        "| views with a blur model |",
+        "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
     for r in rows:
         lines.append(
             f"| {r['scene']} | {r['size']} | {r['records']} | {r['method']} | {float(r['step_ms']):.1f} "
@@ -160,8 +163,12 @@ def format_table(rows: Sequence[Dict[str, object]], header: str = "") -> str:
         )
     broken_down = [r for r in rows if r.get("breakdown_ms")]
     if broken_down:
-        lines += ["", f"Time breakdown (ms per step over {broken_down[0]['breakdown_steps']} more steps, the device "
-                  "synchronised at every stage boundary):", ""]
+        lines += [
+            "",
+            f"Time breakdown (ms per step over {broken_down[0]['breakdown_steps']} more steps, the device "
+            "synchronised at every stage boundary):",
+            "",
+        ]
         lines += [f"- {r['scene']} {r['method']}: {r['breakdown_ms']}" for r in broken_down]
     return "\n".join(lines) + "\n"
 

@@ -22,6 +22,7 @@ from torch import Tensor, nn
 
 from gsmsdr_ns.ops.disk_defocus import apply_occluding_defocus, apply_soft_disk_defocus
 from gsmsdr_ns.ops.disk_kernels import occluding_disk_kernels, soft_disk_kernels
+
 from .maan import check_bchw, check_view_ids
 
 __all__ = ["thin_lens_radius", "lens_window", "ThinLensDefocus"]

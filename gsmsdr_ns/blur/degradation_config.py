@@ -95,7 +95,9 @@ class DegradationConfig:
         if self.shake_samples < 1:
             raise ValueError(f"shake_samples must be >= 1, got {self.shake_samples}")
         if self.resolution_kernel_size < 1 or self.resolution_kernel_size % 2 == 0:
-            raise ValueError(f"resolution_kernel_size must be a positive odd integer, got {self.resolution_kernel_size}")
+            raise ValueError(
+                f"resolution_kernel_size must be a positive odd integer, got {self.resolution_kernel_size}"
+            )
 
     @property
     def loss_weights(self) -> DegradationLossWeights:

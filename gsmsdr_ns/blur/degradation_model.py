@@ -4,10 +4,11 @@ It owns one :class:`~gsmsdr_ns.blur.profile.DegradationProfile` per training ima
 those profiles need: the camera-shake paths (``DegradationConfig.camera_shake``), the thin lens for defocus, the
 blur field (MAAN + HPKO) with its HPKO scheduler, and the resolution-loss model. A sharp scene builds none of
 them. The field's architecture is its :class:`~gsmsdr_ns.blur.field.BlurFieldConfig`; everything else is the
-:class:`~gsmsdr_ns.blur.degradation_config.DegradationConfig`. One training step enters it three times, each a function of its arguments (no state carried between them):
-:meth:`DegradationModel.plan` says what the image needs at this step and resolution, :meth:`DegradationModel.forward`
-passes the render through it and returns the degraded image with one :class:`~gsmsdr_ns.blur.losses.DegradationAux`,
-and :meth:`DegradationModel.losses` turns that into every degradation loss term. The viewer's blur outputs come from
+:class:`~gsmsdr_ns.blur.degradation_config.DegradationConfig`. One training step enters it three times, each a
+function of its arguments (no state carried between them): :meth:`DegradationModel.plan` says what the image needs
+at this step and resolution, :meth:`DegradationModel.forward` passes the render through it and returns the degraded
+image with one :class:`~gsmsdr_ns.blur.losses.DegradationAux`, and :meth:`DegradationModel.losses` turns that into
+every degradation loss term. The viewer's blur outputs come from
 :meth:`DegradationModel.preview`; it and ``forward`` run "the thin lens, then the field" through one method,
 :meth:`DegradationModel._lens_then_field`.
 
@@ -123,7 +124,7 @@ def remap_legacy_keys(state_dict: Mapping[str, Any], prefix: str) -> Mapping[str
 
     def moved(key: str) -> str:
         key = prefix + key if key.startswith(legacy) else key
-        return prefix + "thin_lens" + key[len(old_lens):] if key.startswith(old_lens) else key
+        return prefix + "thin_lens" + key[len(old_lens) :] if key.startswith(old_lens) else key
 
     out: Any = OrderedDict((moved(key), value) for key, value in state_dict.items())
     metadata = getattr(state_dict, "_metadata", None)

@@ -29,8 +29,9 @@ from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 from torch import Tensor, nn
 
 from gsmsdr_ns.ops.grid_kernels import GridKernels, apply_grid_kernels, pool_to_grid, upsample_grid
-from .hpko import HPKOHeads, ViewKernels, check_kernel_sizes, hpko_scales
 from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels, apply_pixel_kernels
+
+from .hpko import HPKOHeads, ViewKernels, check_kernel_sizes, hpko_scales
 from .maan import MCA, BAGSFeatures, ContextualFeatures, RGBDFeatures, check_bchw, check_view_ids
 
 __all__ = ["BlurFieldConfig", "BlurField", "BlurFieldDims", "BlurFieldModules"]

@@ -49,7 +49,6 @@ __all__ = [
 ]
 
 
-
 @dataclass(frozen=True)
 class DegradationProfile:
     """What degraded one training image. Default: sharp."""

@@ -176,9 +176,7 @@ def read_poses_bounds(path: Path, names: Sequence[str]) -> SceneCameras:
     array = array.astype(np.float64)
     bad = np.flatnonzero(~np.all(np.isfinite(array), axis=1))
     if bad.size:
-        raise InputError(
-            f"gsmsdr: '{path}' row {int(bad[0])} (image '{names[bad[0]]}') contains non-finite values."
-        )
+        raise InputError(f"gsmsdr: '{path}' row {int(bad[0])} (image '{names[bad[0]]}') contains non-finite values.")
     poses = array[:, :15].reshape(-1, 3, 5)
     height, width, focal = poses[:, 0, 4], poses[:, 1, 4], poses[:, 2, 4]
     bad = np.flatnonzero((height <= 0) | (width <= 0) | (focal <= 0))
@@ -252,4 +250,3 @@ def write_poses_bounds(path: Path, cameras: SceneCameras, bounds: Optional[np.nd
         bounds = cameras.bounds if cameras.bounds is not None else depth_bounds(cameras, np.zeros((0, 3)))
     array = poses_bounds_array(cameras, bounds)
     write_file_atomic(Path(path), lambda tmp: np.save(tmp, array))
-

@@ -81,9 +81,7 @@ def record_from_entry(name: str, split: str, entry: Optional[Dict[str, Any]]) ->
     return {"name": name, "split": split, "degraded": bool(degraded), "effects": effects, "mixres_factor": factor}
 
 
-def match_entries(
-    doc: Dict[str, Any], names: Iterable[str], path: Path
-) -> Dict[str, Optional[Dict[str, Any]]]:
+def match_entries(doc: Dict[str, Any], names: Iterable[str], path: Path) -> Dict[str, Optional[Dict[str, Any]]]:
     """Map each scene image name to its degradation.json entry (None when missing, with one warning).
 
     Entries may be keyed by the exact name or by a name with the same stem (downscaled copies are often PNG). An

@@ -192,7 +192,7 @@ def check_entry(path: Path, name: str, entry: Any, fix: str) -> None:
         if key in entry:
             _check(path, where, key, entry[key], spec, fix)
     effects = entry.get("effects", {})
-    _unknown_effects(path, f"{where}, field \"effects\"", list(effects), fix)
+    _unknown_effects(path, f'{where}, field "effects"', list(effects), fix)
     for effect, record in effects.items():
         field_name = f"effects.{effect}"
         if not isinstance(record, Mapping):
@@ -212,6 +212,6 @@ def check_document(path: Path, doc: Mapping[str, Any], fix: str) -> None:
         if key in doc:
             _check(path, where, key, doc[key], spec, fix)
     if isinstance(doc.get("effects"), list):
-        _unknown_effects(path, "the top-level field \"effects\"", doc["effects"], fix)
+        _unknown_effects(path, 'the top-level field "effects"', doc["effects"], fix)
     for name, entry in doc["images"].items():
         check_entry(path, name, entry, fix)

@@ -218,4 +218,3 @@ def cache_dir_for(scene_dir: Path, seed: int, images_dir: str = "images") -> Pat
 def group_sizes(factors: Sequence[int], choices: Sequence[int] = MIXRES_FACTORS) -> Tuple[int, ...]:
     """How many images got each factor of ``choices`` (for logs and tests)."""
     return tuple(int(sum(1 for f in factors if f == c)) for c in choices)
-

@@ -26,9 +26,7 @@ def rotation_defects(rotations: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return error, np.linalg.det(rotations)
 
 
-def check_rotations(
-    rotations: np.ndarray, source: Union[str, Path], labels: Sequence[str], fix: str
-) -> None:
+def check_rotations(rotations: np.ndarray, source: Union[str, Path], labels: Sequence[str], fix: str) -> None:
     """Raise :class:`InputError` for the first rotation [N, 3, 3] that is not orthonormal with det +1.
 
     A rotation passes when ``max |R^T R - I| <= ROTATION_TOLERANCE`` and ``|det(R) - 1| <= ROTATION_TOLERANCE``

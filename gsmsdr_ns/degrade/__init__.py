@@ -11,6 +11,8 @@ Public API:
         mixres_factors, apply_mixres, add_noise (+ module twins PSFBlur, RotationalShakeBlur, LayeredDefocus)
 """
 
+from ..data.mixres import mixres_factors
+from ..ops.mixres import apply_mixres
 from .config import (
     DefocusConfig,
     DegradeConfig,
@@ -20,8 +22,6 @@ from .config import (
     load_preset,
     normalize_effects,
 )
-from ..data.mixres import mixres_factors
-from ..ops.mixres import apply_mixres
 from .kernels import (
     LayeredDefocus,
     PSFBlur,

@@ -49,6 +49,7 @@ class DegradeCLI:
         t0 = time.perf_counter()
         log = (lambda msg: CONSOLE.log(msg)) if self.verbose else None
         preset_name = self.preset.stem if self.preset is not None else None
+
         def notice(message: str) -> None:  # shown without --verbose (the undistortion of a distorted input)
             CONSOLE.print(message, soft_wrap=True, markup=False, highlight=False)
 

@@ -18,7 +18,6 @@ from ..data.effects import KNOWN_EFFECTS, SHARP_ALIASES
 from ..io.config import load_dataclass, read_yaml_mapping
 
 
-
 @dataclass
 class MotionConfig:
     """Camera shake during the exposure."""

@@ -17,12 +17,12 @@ import torch
 from kornia.color import rgb_to_linear_rgb
 from torch import Tensor
 
+from ..data.mixres import mixres_factors
+from ..ops.mixres import apply_mixres
 from ..synth.config import SynthSceneConfig
 from ..synth.raycast import render_view
 from ..synth.scene import Scene, build_scene
 from .config import DefocusConfig, MixresConfig, MotionConfig, NoiseConfig
-from ..data.mixres import mixres_factors
-from ..ops.mixres import apply_mixres
 from .kernels import (
     add_noise,
     apply_defocus,
@@ -98,7 +98,8 @@ def motion_effect(image: Tensor, ctx: ViewContext, cfg: MotionConfig, rng: np.ra
         kernel = motion_kernel_from_trajectory(path)
         out = convolve_psf(image, kernel.to(image.dtype))
         rec = {"model": "kernel", "blur_px": _r(target), "samples": T, "kernel_size": int(kernel.shape[-1]),
-               "border_reach_px": float(kernel.shape[-1] // 2), "trajectory_px": np.round(path, 6).tolist()}  # fmt: skip
+               "border_reach_px": float(kernel.shape[-1] // 2),
+               "trajectory_px": np.round(path, 6).tolist()}  # fmt: skip
         return out, rec
     if model == "rotational_shake":
         traj, ext = calibrated_shake(

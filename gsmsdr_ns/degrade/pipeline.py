@@ -30,13 +30,14 @@ from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 
 from .. import __version__
 from ..data.cameras import llff_poses_bounds_rows
+from ..data.effects import BLUR_EFFECTS
+from ..data.mixres import mixres_factors
 from ..io.atomic import atomic_dir, temp_sibling_dir
 from ..io.colmap import write_colmap_model
 from ..io.images import read_image, read_image_float, write_image
 from ..synth.config import SynthSceneConfig
 from ..synth.generate import check_target, to_uint8
 from ..synth.points import SparsePoints
-from ..data.effects import BLUR_EFFECTS
 from .config import DegradeConfig
 from .effects import (
     ViewContext,
@@ -47,7 +48,6 @@ from .effects import (
     sample_assignment,
     view_rng,
 )
-from ..data.mixres import mixres_factors
 from .source import SourceScene, load_depth, load_source
 from .undistort import describe_distortion, undistort_scene
 

@@ -209,9 +209,7 @@ def load_source(root: str | Path, check_images: bool = True) -> SourceScene:
     elif (root / "transforms.json").is_file():
         src = _load_transforms(root, root / "transforms.json")
     else:
-        raise InputError(
-            f"{root} has no COLMAP model (sparse/0/) and no transforms.json: nothing to read cameras from"
-        )
+        raise InputError(f"{root} has no COLMAP model (sparse/0/) and no transforms.json: nothing to read cameras from")
     if len(src.names) < 2:
         raise InputError(f"{root}: need at least 2 views, found {len(src.names)}")
     for name, path in zip(src.names, src.image_paths):

@@ -106,7 +106,9 @@ def _tile_detail_spread(grads: Tensor, tiles: int = 10) -> float:
     """
     h, w = grads.shape[-2:]
     g = grads.to(torch.float64)
-    products = torch.stack([g[:, 0] * g[:, 0], g[:, 1] * g[:, 1], g[:, 0] * g[:, 1]], dim=1)  # [2, 3 (xx, yy, xy), h, w]
+    products = torch.stack(
+        [g[:, 0] * g[:, 0], g[:, 1] * g[:, 1], g[:, 0] * g[:, 1]], dim=1
+    )  # [2, 3 (xx, yy, xy), h, w]
     rows = [i * h // tiles for i in range(tiles + 1)]
     cols = [j * w // tiles for j in range(tiles + 1)]
     bands = torch.stack([products[..., rows[i] : rows[i + 1], :].sum(-2) for i in range(tiles)], dim=-2)

@@ -101,8 +101,13 @@ def ensemble_to_json(
         "learning_rate": float(learning_rate),
         **({"provenance": dict(provenance)} if provenance is not None else {}),
         # thresholds exact (a rounded one can move past a measured value), leaf values rounded
-        "trees": [{k: [float(v) if k == "threshold" else round(float(v), 7) if k == "value" else int(v) for v in t[k]]
-                   for k in ("left", "right", "feature", "threshold", "value")} for t in trees],  # fmt: skip
+        "trees": [
+            {
+                k: [float(v) if k == "threshold" else round(float(v), 7) if k == "value" else int(v) for v in t[k]]
+                for k in ("left", "right", "feature", "threshold", "value")
+            }
+            for t in trees
+        ],  # fmt: skip
     }
     return json.dumps(doc, separators=(",", ":"))
 

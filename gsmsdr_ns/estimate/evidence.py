@@ -68,9 +68,7 @@ def _orientation_spread(by_angle: np.ndarray, baseline: np.ndarray) -> float:
     return float(np.ptp(rel)) if rel.size >= 2 else 0.0
 
 
-def _width_evidence(
-    feats: Sequence[ImageFeatures], cfg: EstimateConfig
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _width_evidence(feats: Sequence[ImageFeatures], cfg: EstimateConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Step-edge widths against the set's narrowest-edged images -> (soft width [n], width spread [n], sharpest
     region [n]); NaN unknown.
 

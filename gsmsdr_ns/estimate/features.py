@@ -14,10 +14,26 @@ from dataclasses import dataclass
 import numpy as np
 from torch import Tensor
 
-from .direction import SPECTRUM_BANDS, _detail_tensor, _tile_detail_coherence, _tile_detail_spread, detail_tensor
-from .direction import inverse_sqrt, spectral_anisotropy, tile_detail_coherence, tile_detail_spread
-from .edges import _edge_sharpness, _width_quantiles, edge_rise_ratio, edge_sharpness, edge_width
-from .edges import sharpest_region_width, step_edges
+from .direction import (
+    SPECTRUM_BANDS,
+    _detail_tensor,
+    _tile_detail_coherence,
+    _tile_detail_spread,
+    detail_tensor,
+    inverse_sqrt,
+    spectral_anisotropy,
+    tile_detail_coherence,
+    tile_detail_spread,
+)
+from .edges import (
+    _edge_sharpness,
+    _width_quantiles,
+    edge_rise_ratio,
+    edge_sharpness,
+    edge_width,
+    sharpest_region_width,
+    step_edges,
+)
 from .grid import grid_scores
 from .image_ops import analysis_view, gaussian_smooth, laplacian_variance, scale_gradients, sobel_gradient, to_gray
 

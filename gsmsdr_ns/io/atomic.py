@@ -83,7 +83,10 @@ def write_text_atomic(path: Path, text: str) -> Path:
 
 
 def write_json_atomic(
-    path: Path, payload: Any, indent: Optional[int] = 1, default: Optional[Callable[[Any], Any]] = None,
+    path: Path,
+    payload: Any,
+    indent: Optional[int] = 1,
+    default: Optional[Callable[[Any], Any]] = None,
     allow_nan: bool = True,
 ) -> Path:
     """Write ``payload`` as JSON to ``path`` atomically; ``default`` / ``allow_nan`` as in :func:`json.dumps`."""

@@ -133,12 +133,13 @@ def storage_error_line(exc: BaseException) -> Optional[str]:
         target = Path(full.filename) if full.filename else None
         where = f"writing '{target}'" if target else "writing its output"
         free = _format_free(target.parent if target else Path.cwd())
-        return (f"gsmsdr: no space left on the disk {where} ({free}). Free some space, or write to a disk with "
-                "room.")
+        return f"gsmsdr: no space left on the disk {where} ({free}). Free some space, or write to a disk with room."
     refused = _oserror_in_chain(exc, WRITE_REFUSED_ERRNOS)
     if refused is not None and refused.filename:
         if refused.errno == errno.EROFS:
             return f"gsmsdr: cannot write '{refused.filename}': the file system is read-only. Write to another folder."
-        return (f"gsmsdr: permission denied for '{refused.filename}'. Check its permissions; for an output, use a "
-                "folder you may write to.")
+        return (
+            f"gsmsdr: permission denied for '{refused.filename}'. Check its permissions; for an output, use a "
+            "folder you may write to."
+        )
     return None

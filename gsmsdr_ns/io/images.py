@@ -103,8 +103,8 @@ channels would otherwise pass for RGBA), or there are two of them (grey + alpha)
 def _decode(path: Path, mode: str) -> np.ndarray:
     """Pixel data of an image file: Pillow's conversion to RGB(A) for the modes of :data:`CONVERTED_MODES`,
     scikit-image's decoder otherwise (16-bit colour PNGs then re-read at their depth)."""
-    from PIL import Image
     import skimage.io
+    from PIL import Image
 
     target = CONVERTED_MODES.get(mode)
     if target is not None:

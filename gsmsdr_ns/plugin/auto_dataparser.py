@@ -126,9 +126,11 @@ class GSMSDRAutoDataParser(DataParser):
 def _copied_test_views_message(pairs, data: Path) -> str:
     shown = ", ".join(f"'{test.name}' (= training image '{train}')" for test, train in pairs[:10])
     more = f", ... ({len(pairs)} in all)" if len(pairs) > 10 else ""
-    return (f"gsmsdr: test view(s) of '{data}' that copy a training image: {shown}{more}. Their scores would measure "
-            "memory, not reconstruction: remove the copies (or retake those views). "
-            "--pipeline.datamanager.dataparser.refuse-copied-test-views False trains anyway.")
+    return (
+        f"gsmsdr: test view(s) of '{data}' that copy a training image: {shown}{more}. Their scores would measure "
+        "memory, not reconstruction: remove the copies (or retake those views). "
+        "--pipeline.datamanager.dataparser.refuse-copied-test-views False trains anyway."
+    )
 
 
 def estimate_folder(folder: Path, names: List[str]) -> Path:

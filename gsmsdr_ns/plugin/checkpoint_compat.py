@@ -277,9 +277,10 @@ def check_thin_lens(layout: CheckpointLayout, model_state: State, checkpoint_sta
         checkpoint_state,
         layout.thin_lens_key,
         "has a thin lens that this run's config does not build: it was trained with the lens on images blurred by an "
-        "unknown kind of blur, which is now optional (add --pipeline.model.degradation-model.thin-lens-for-unknown-kind True)",
-        "has no thin lens, but this run's config builds one (add --pipeline.model.degradation-model.thin-lens False, or "
-        "--pipeline.model.degradation-model.thin-lens-for-unknown-kind False if it was set)",
+        "unknown kind of blur, which is now optional (add "
+        "--pipeline.model.degradation-model.thin-lens-for-unknown-kind True)",
+        "has no thin lens, but this run's config builds one (add --pipeline.model.degradation-model.thin-lens False, "
+        "or --pipeline.model.degradation-model.thin-lens-for-unknown-kind False if it was set)",
     )
 
 

@@ -131,11 +131,14 @@ def find_checkpoint(load_dir: Path, load_step: Optional[int] = None, nerfstudio_
     (which parses a step number out of every name in the folder) would fail on.
     """
     load_dir = Path(load_dir)
-    where = ("checkpoints are written to <run>/nerfstudio_models "
-             "(outputs/<scene>/<method>/<timestamp>/nerfstudio_models)")
+    where = (
+        "checkpoints are written to <run>/nerfstudio_models (outputs/<scene>/<method>/<timestamp>/nerfstudio_models)"
+    )
     if load_dir.is_file():
-        raise InputError(f"gsmsdr: '{load_dir}' is a file; --load-dir takes a folder of checkpoints "
-                         "(<run>/nerfstudio_models). To load one file, pass it with --load-checkpoint instead.")
+        raise InputError(
+            f"gsmsdr: '{load_dir}' is a file; --load-dir takes a folder of checkpoints "
+            "(<run>/nerfstudio_models). To load one file, pass it with --load-checkpoint instead."
+        )
     if not load_dir.is_dir():
         raise InputError(f"gsmsdr: checkpoint folder '{load_dir}' does not exist; {where}.")
     steps = checkpoint_steps(load_dir)

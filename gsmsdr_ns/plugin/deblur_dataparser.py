@@ -27,8 +27,14 @@ from gsmsdr_ns.data.degradation import load_degradation_json, match_entries, rec
 from gsmsdr_ns.data.layout import DEFAULT_HOLD, hold_files, holdout_split, read_hold
 from gsmsdr_ns.io.errors import InputError, InputWarning
 from gsmsdr_ns.io.images import read_image_size, resolve_image
-from gsmsdr_ns.plugin.scene_parser import POSES_BOUNDS, SceneSource, SortedSceneParser, SortedSceneParserConfig
-from gsmsdr_ns.plugin.scene_parser import find_colmap_model, split_indices
+from gsmsdr_ns.plugin.scene_parser import (
+    POSES_BOUNDS,
+    SceneSource,
+    SortedSceneParser,
+    SortedSceneParserConfig,
+    find_colmap_model,
+    split_indices,
+)
 
 
 @dataclass

@@ -31,8 +31,9 @@ class EvalWithAlignment:
     """How the poses are optimised."""
 
     def main(self) -> dict:
-        import gsmsdr_ns.plugin  # noqa: F401  (checkpoint loading under torch's weights_only default)
         from nerfstudio.utils.eval_utils import eval_setup
+
+        import gsmsdr_ns.plugin  # noqa: F401  (checkpoint loading under torch's weights_only default)
 
         if not self.load_config.is_file():
             raise FileNotFoundError(f"gsmsdr-eval: config '{self.load_config}' does not exist; pass a run's "

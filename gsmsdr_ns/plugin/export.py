@@ -119,9 +119,10 @@ class ExportCLI:
     """Size of the crop box along each of its axes."""
 
     def main(self) -> Path:
-        import gsmsdr_ns.plugin  # noqa: F401  (allow-lists the checkpoint's numpy scalars for torch.load)
         from nerfstudio.models.splatfacto import SplatfactoModel
         from nerfstudio.utils.eval_utils import eval_setup
+
+        import gsmsdr_ns.plugin  # noqa: F401  (allow-lists the checkpoint's numpy scalars for torch.load)
 
         if not self.load_config.is_file():
             raise FileNotFoundError(f"gsmsdr-export: config '{self.load_config}' does not exist; pass a run's "

@@ -24,8 +24,13 @@ from gsmsdr_ns.data.degradation import sharp_record
 from gsmsdr_ns.data.layout import holdout_split
 from gsmsdr_ns.data.mixres import MIXRES_FACTORS, MixresImages, cache_dir_for, group_sizes, mixres_cache
 from gsmsdr_ns.io.errors import InputError
-from gsmsdr_ns.plugin.scene_parser import SceneSource, SortedSceneParser, SortedSceneParserConfig, find_colmap_model
-from gsmsdr_ns.plugin.scene_parser import split_indices
+from gsmsdr_ns.plugin.scene_parser import (
+    SceneSource,
+    SortedSceneParser,
+    SortedSceneParserConfig,
+    find_colmap_model,
+    split_indices,
+)
 
 COLMAP_CANDIDATES = (Path("sparse/0"), Path("colmap/sparse/0"))
 

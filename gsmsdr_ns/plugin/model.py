@@ -34,23 +34,23 @@ from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
+from gsmsdr_ns.blur.degradation_config import DegradationConfig, split_legacy_blur_field_state
 from gsmsdr_ns.blur.degradation_model import (
     DegradationModel,
     DegradationPlan,
     crop_margin,
     remap_legacy_keys,
 )
-from gsmsdr_ns.blur.degradation_config import DegradationConfig, split_legacy_blur_field_state
 from gsmsdr_ns.blur.field import BlurFieldConfig
 from gsmsdr_ns.blur.profile import training_profiles
 from gsmsdr_ns.data.effects import DegradationMode
+from gsmsdr_ns.plugin.cameras import TrainImageSizes, intrinsics_at_scale, viewmats_from_camera_to_worlds
 from gsmsdr_ns.plugin.checkpoint_compat import (
     check_camera_shake,
     check_state_dict_shapes,
     check_thin_lens,
     checkpoint_layout,
 )
-from gsmsdr_ns.plugin.cameras import TrainImageSizes, intrinsics_at_scale, viewmats_from_camera_to_worlds
 from gsmsdr_ns.plugin.finite_check import FiniteCheckMixin, NonFiniteRecorder
 from gsmsdr_ns.plugin.gaussians import (
     colours_and_sh_degree,
@@ -68,7 +68,6 @@ from gsmsdr_ns.plugin.lpips import (
 )
 from gsmsdr_ns.render.gsplat_backend import require_gsplat_cuda
 from gsmsdr_ns.timing_hooks import stage, timed
-
 
 
 class GSMSDRWarning(UserWarning):

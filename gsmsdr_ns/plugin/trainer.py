@@ -37,7 +37,6 @@ from gsmsdr_ns.plugin.checkpoint_io import (
     save_checkpoint_atomic,
 )
 
-
 STEP_OPTIONS = ("max_num_iterations", "steps_per_save", "steps_per_log")
 """Trainer step counts that must be >= 1 (0 ends nerfstudio's loop in a KeyError or divides by zero)."""
 

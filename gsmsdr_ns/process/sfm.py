@@ -68,7 +68,7 @@ class ProcessResult:
 
 
 def choose_matching(num_images: int, config: ProcessConfig) -> str:
-    """"exhaustive" or "sequential" for ``num_images`` photos under ``config.matching``."""
+    """ "exhaustive" or "sequential" for ``num_images`` photos under ``config.matching``."""
     if config.matching != "auto":
         return config.matching
     return "exhaustive" if num_images <= config.exhaustive_max_images else "sequential"
@@ -145,6 +145,7 @@ def map_incrementally(
     options.random_seed = config.seed
     options.mapper.random_seed = config.seed
     models_dir.mkdir(parents=True, exist_ok=True)
+
     def on_initial_pair() -> None:
         on_register()
         on_register()

@@ -195,10 +195,27 @@ def rasterize_to_pixels_cpp(
         ValueError: bad shapes, dtypes or devices. RuntimeError: the extension cannot be built.
     """
     _check_inputs(
-        means2d, conics, colors, opacities, image_width, image_height, tile_size, isect_offsets, flatten_ids,
+        means2d,
+        conics,
+        colors,
+        opacities,
+        image_width,
+        image_height,
+        tile_size,
+        isect_offsets,
+        flatten_ids,
         backgrounds,
     )
     return _RasterizeToPixelsCPU.apply(
-        means2d, conics, colors, opacities, backgrounds, int(image_width), int(image_height), int(tile_size),
-        isect_offsets, flatten_ids, bool(absgrad),
+        means2d,
+        conics,
+        colors,
+        opacities,
+        backgrounds,
+        int(image_width),
+        int(image_height),
+        int(tile_size),
+        isect_offsets,
+        flatten_ids,
+        bool(absgrad),
     )

@@ -87,9 +87,9 @@ def _ewa(
     ty = tz * torch.minimum(torch.maximum(y / tz, -lim_y_neg), lim_y_pos)
 
     zeros = torch.zeros_like(tz)
-    J = torch.stack(
-        [fx / tz, zeros, -fx * tx / (tz * tz), zeros, fy / tz, -fy * ty / (tz * tz)], dim=-1
-    ).reshape(tz.shape + (2, 3))  # [C, N, 2, 3]
+    J = torch.stack([fx / tz, zeros, -fx * tx / (tz * tz), zeros, fy / tz, -fy * ty / (tz * tz)], dim=-1).reshape(
+        tz.shape + (2, 3)
+    )  # [C, N, 2, 3]
     cov2d = J @ covars_c @ J.transpose(-1, -2)  # [C, N, 2, 2]
     means2d = torch.stack([fx * x / tz + cx, fy * y / tz + cy], dim=-1)  # [C, N, 2]
 

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import intrinsics, orbit_cameras, world_to_camera
 from ..io.atomic import atomic_dir
 from ..io.colmap import write_colmap_model
 from ..io.images import write_image
+from .cameras import intrinsics, orbit_cameras, world_to_camera
 from .config import SynthSceneConfig
 from .points import sample_sparse_points
 from .raycast import render_view

@@ -29,10 +29,10 @@ import numpy as np
 import tyro
 
 from gsmsdr_ns.data.cameras import llff_to_opencv
-from gsmsdr_ns.io.images import list_images, read_image
-from gsmsdr_ns.io.photo_sets import find_photo_set, photo_set_roots
 from gsmsdr_ns.degrade.variants import BUILTIN_PRESETS, VARIANTS
 from gsmsdr_ns.estimate.classify import EstimateConfig, estimate_degradations
+from gsmsdr_ns.io.images import list_images, read_image
+from gsmsdr_ns.io.photo_sets import find_photo_set, photo_set_roots
 
 SYNTH_VARIANTS = ("sharp", "motion", "defocus", "mixres", "mixed", "motion-strong", "defocus-strong")
 PHOTO_VARIANTS = ("motion", "defocus", "mixres", "motion-defocus", "mixed", "motion-strong", "defocus-strong")

@@ -73,9 +73,7 @@ class EvidenceRows:
         return (self.stages == "sharp") & np.isin(self.truth, ["sharp", "motion", "defocus"])
 
 
-def scene_rows(
-    scene: Path, config: Optional[EstimateConfig] = None
-) -> tuple[np.ndarray, list[str], list[str]]:
+def scene_rows(scene: Path, config: Optional[EstimateConfig] = None) -> tuple[np.ndarray, list[str], list[str]]:
     """(evidence [n, features], threshold stage per image, true label per image) of one scene with true records,
     measured with ``config`` (default: the default config)."""
     doc = json.loads((scene / "degradation.json").read_text(encoding="utf8"))
