@@ -162,7 +162,8 @@ def test_gsmsdr_process_refuses_a_disk_without_room_before_pycolmap_starts(tmp_p
     assert "Traceback" not in proc.stdout + proc.stderr
     output = proc.stdout + proc.stderr
     lines = [line for line in output.splitlines() if "error:" in line]
-    assert len(lines) == 1 and "gsmsdr-process needs about" in lines[0] and f"in '{disk}'" in lines[0], output
+    assert len(lines) == 1 and "no space left on the disk for gsmsdr-process: it needs about" in lines[0], output
+    assert f"in '{disk}'" in lines[0], output
     assert lines[0].endswith("are free; nothing was written. Free some space, or choose --out on a disk with room.")
     assert list(disk.iterdir()) == []
 
@@ -172,8 +173,8 @@ def test_the_free_space_check_names_what_is_needed(tmp_path, monkeypatch):
     monkeypatch.setattr(shutil, "disk_usage", lambda _p: usage._replace(free=3 * 2**20))
     with pytest.raises(DiskFullError) as caught:
         require_free_space(tmp_path / "not" / "yet", 10 * 2**20, "gsmsdr-process", "Choose another --out.")
-    assert str(caught.value) == (f"gsmsdr-process needs about 10.0 MiB in '{tmp_path}', 3.0 MiB are free; nothing "
-                                 "was written. Choose another --out.")  # fmt: skip
+    assert str(caught.value) == (f"gsmsdr: no space left on the disk for gsmsdr-process: it needs about 10.0 MiB in "
+                                 f"'{tmp_path}', 3.0 MiB are free; nothing was written. Choose another --out.")  # fmt: skip
     require_free_space(tmp_path, 2 * 2**20, "x", "y")  # enough: no error
 
 
@@ -323,3 +324,21 @@ def test_a_checkpoints_size_counts_each_tensor_storage_once():
     weights = torch.zeros(1000)
     payload = {"step": 3, "model": {"w": weights, "w_view": weights[:10]}, "optim": [torch.ones(5, dtype=torch.int64)]}
     assert tensor_bytes(payload) == 1000 * 4 + 5 * 8
+
+
+def test_an_atomic_file_on_a_full_tmpfs_names_the_room_it_needs_and_leaves_nothing(tmpfs):
+    from gsmsdr_ns.io.atomic import write_bytes_atomic, write_file_atomic
+
+    disk = tmpfs(64)
+    _fill(disk)
+    before = sorted(disk.rglob("*"))
+    data = bytes(3 * 2**20)
+    with pytest.raises(DiskFullError) as caught:
+        write_bytes_atomic(disk / "out" / "records.json", data)
+    message = str(caught.value)
+    assert message.startswith(f"gsmsdr: no space left on the disk writing '{disk / 'out' / 'records.json'}' (")
+    assert "(it needs 3.0 MiB, " in message and f"free in '{disk}'" in message
+    assert caught.value.errno == errno.ENOSPC and storage_error_line(caught.value) is None  # printed as it is
+    with pytest.raises(DiskFullError, match=r"\(it needs more than [0-9.]+ \w+, "):
+        write_file_atomic(disk / "image.png", lambda tmp: Path(tmp).write_bytes(data))  # size unknown in advance
+    assert sorted(disk.rglob("*")) == before  # no temporary, no folder made for the file

@@ -41,7 +41,7 @@ def write_json_atomic(path: Path, payload: Any) -> Path:
 
 def copy_file_atomic(source: Path, path: Path) -> Path:
     """Copy ``source`` to ``path`` atomically (a temporary sibling, then a rename)."""
-    return atomic.write_file_atomic(path, lambda tmp: shutil.copyfile(source, tmp))
+    return atomic.write_file_atomic(path, lambda tmp: shutil.copyfile(source, tmp), size=Path(source).stat().st_size)
 
 
 def load_record(path: Path) -> Optional[Dict[str, Any]]:

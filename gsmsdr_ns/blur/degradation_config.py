@@ -14,7 +14,7 @@ from typing import Any, Dict, Mapping, Optional, Tuple
 
 from gsmsdr_ns.blur.losses import DegradationLossWeights
 
-__all__ = ["DegradationConfig", "split_legacy_blur_field_state"]
+__all__ = ["DegradationConfig", "with_degradation_config"]
 
 
 @dataclass
@@ -109,9 +109,19 @@ class DegradationConfig:
 DEGRADATION_FIELDS = tuple(f.name for f in fields(DegradationConfig))
 
 
-def split_legacy_blur_field_state(blur_field_state: Mapping[str, Any]) -> Tuple[Dict[str, Any], Dict[str, Any]]:
-    """A ``BlurFieldConfig``'s attributes as configs written before :class:`DegradationConfig` existed held them,
-    split into (the blur field's own, ``DegradationConfig`` keyword arguments)."""
-    own = {k: v for k, v in blur_field_state.items() if k not in DEGRADATION_FIELDS}
-    moved = {k: v for k, v in blur_field_state.items() if k in DEGRADATION_FIELDS}
-    return own, moved
+def with_degradation_config(model_state: Mapping[str, Any]) -> Dict[str, Any]:
+    """A model config's attributes (as a config.yml holds them) with a ``degradation_model``: one written before
+    :class:`DegradationConfig` existed had its options in ``blur_field`` (a ``BlurFieldConfig`` loaded with them as
+    attributes) and ``resolution_kernel_size``; they move into a new ``DegradationConfig``, the rest stays."""
+    state = dict(model_state)
+    if "degradation_model" in state:
+        return state
+    moved: Dict[str, Any] = {}
+    blur = state.get("blur_field")
+    if blur is not None:
+        attributes = vars(blur)
+        moved = {k: attributes.pop(k) for k in list(attributes) if k in DEGRADATION_FIELDS}
+    if "resolution_kernel_size" in state:
+        moved["resolution_kernel_size"] = state.pop("resolution_kernel_size")
+    state["degradation_model"] = DegradationConfig(**moved)
+    return state

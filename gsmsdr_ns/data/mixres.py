@@ -51,7 +51,7 @@ def assign_mixres_factors(num_images: int, seed: int, factors: Sequence[int] = M
     """Factor of each of ``num_images`` training images (in the given order, i.e. sorted by file name).
 
     The views are split at random into ``len(factors)`` equal groups (sizes differ by at most one; which groups get
-    the remainder is random too), the same rule ``gsmsdr-degrade --effects mixres`` uses: both call
+    the remainder is random too), the same rule ``gsmsdr-degrade --effect mixres`` uses: both call
     :func:`mixres_factors`.
     """
     if any(int(f) < 1 for f in factors):

@@ -34,6 +34,7 @@ from ..data.effects import BLUR_EFFECTS
 from ..data.mixres import mixres_factors
 from ..io.atomic import atomic_dir, temp_sibling_dir
 from ..io.colmap import write_colmap_model
+from ..io.errors import require_free_space
 from ..io.images import read_image, read_image_float, write_image
 from ..synth.config import SynthSceneConfig
 from ..synth.generate import check_target, to_uint8
@@ -401,6 +402,12 @@ def degrade_scene(
             src.depth_paths = []  # depth maps of the distorted images do not fit the undistorted ones
         else:
             src = load_source(inp)
+        # the output holds every view twice (degraded in images/, sharp in images_test/); a full disk midway would
+        # leave the work undone anyway: say so before starting
+        needed = 2 * sum(path.stat().st_size for path in src.image_paths) + 8 * 2**20
+        require_free_space(
+            out.parent, needed, "gsmsdr-degrade", "Free some space, or choose --out on a disk with room."
+        )
         with atomic_dir(out) as tmp:
             (tmp / "images").mkdir()
             (tmp / "images_test").mkdir()

@@ -7,6 +7,8 @@ the caller without either the old or the new folder.
 
 Temporary names end in ``-<pid>-<8 hex digits>``: what a killed process (SIGKILL, a power cut) left behind is
 removed by the next writer of the same target (:func:`remove_stale_temporaries`), not by the process that died.
+A file that finds the disk full raises :class:`~gsmsdr_ns.io.errors.DiskFullError` naming the file, the room it
+needs and the room there is.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Callable, Iterator, List, Optional
+
+from gsmsdr_ns.io.errors import DiskFullError, disk_full_cause, format_bytes, free_space_text
 
 STALE_AFTER_S = 60.0
 """A temporary of a process that no longer runs is removed only once untouched this long (a process of another
@@ -74,7 +78,7 @@ def remove_stale_temporaries(folder: Path, prefix: str) -> List[Path]:
 
 def write_bytes_atomic(path: Path, data: bytes) -> Path:
     """Write ``data`` to ``path`` through a temporary sibling file (fsynced, then renamed into place)."""
-    return write_file_atomic(path, lambda tmp: Path(tmp).write_bytes(data))
+    return write_file_atomic(path, lambda tmp: Path(tmp).write_bytes(data), size=len(data))
 
 
 def write_text_atomic(path: Path, text: str) -> Path:
@@ -93,10 +97,12 @@ def write_json_atomic(
     return write_text_atomic(path, json.dumps(payload, indent=indent, default=default, allow_nan=allow_nan))
 
 
-def write_file_atomic(path: Path, write: Callable[[Path], Any]) -> Path:
+def write_file_atomic(path: Path, write: Callable[[Path], Any], size: Optional[int] = None) -> Path:
     """Let ``write(tmp_path)`` produce the file (an image encoder, ``np.save``, ``fig.savefig``), then rename it.
 
-    The temporary name keeps the target's extension, for writers that choose the format from it.
+    The temporary name keeps the target's extension, for writers that choose the format from it. ``size``: the
+    file's size in bytes when known, named by the DiskFullError a full disk raises (else the bytes written before
+    the disk filled, as a lower bound).
     """
     path = Path(path)
     created = _make_parents(path.parent)
@@ -108,15 +114,30 @@ def write_file_atomic(path: Path, write: Callable[[Path], Any]) -> Path:
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
+        full = disk_full_cause(exc) if isinstance(exc, Exception) else None
+        written = tmp.stat().st_size if full is not None and tmp.exists() else 0
         tmp.unlink(missing_ok=True)
         for folder in reversed(created):  # the folders made for this file, if nothing else went into them
             try:
                 folder.rmdir()
             except OSError:
                 break
+        if full is not None and not isinstance(exc, DiskFullError):
+            raise _file_disk_full(path, full, size, written) from exc
         raise
     return path
+
+
+def _file_disk_full(path: Path, error: OSError, size: Optional[int], written: int) -> DiskFullError:
+    """The one-line error of a file that did not fit: its name, the room it needs, the room there is."""
+    needs = f"it needs {format_bytes(size)}" if size is not None else f"it needs more than {format_bytes(written)}"
+    full = DiskFullError(
+        f"gsmsdr: no space left on the disk writing '{path}' ({needs}, {free_space_text(path.parent)}); it was not "
+        "written. Free some space, or write to a disk with room."
+    )
+    full.errno = error.errno  # without strerror or filename, which would make str() the "[Errno 28] ..." form
+    return full
 
 
 def _make_parents(folder: Path) -> List[Path]:

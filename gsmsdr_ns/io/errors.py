@@ -94,6 +94,11 @@ def _existing(folder: Path) -> Path:
     return folder
 
 
+def free_space_text(folder: Path) -> str:
+    """``"1.2 GiB free in '<folder>'"`` for ``folder`` (or its nearest existing parent)."""
+    return _format_free(folder)
+
+
 def _format_free(folder: Path) -> str:
     folder = _existing(folder)
     try:
@@ -113,8 +118,8 @@ def require_free_space(folder: Path, needed: int, what: str, fix: str) -> None:
         return
     if free < needed:
         error = DiskFullError(
-            f"{what} needs about {format_bytes(needed)} in '{folder}', {format_bytes(free)} are free; nothing was "
-            f"written. {fix}"
+            f"gsmsdr: no space left on the disk for {what}: it needs about {format_bytes(needed)} in '{folder}', "
+            f"{format_bytes(free)} are free; nothing was written. {fix}"
         )
         error.errno = errno.ENOSPC
         raise error

@@ -34,7 +34,7 @@ from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
-from gsmsdr_ns.blur.degradation_config import DegradationConfig, split_legacy_blur_field_state
+from gsmsdr_ns.blur.degradation_config import DegradationConfig, with_degradation_config
 from gsmsdr_ns.blur.degradation_model import (
     DegradationModel,
     DegradationPlan,
@@ -109,19 +109,8 @@ class GSMSDRModelConfig(SplatfactoModelConfig):
     None: 1 on the CPU (reading costs no wait there), 10 on a GPU."""
 
     def __setstate__(self, state: Dict) -> None:
-        """A config.yml written before ``degradation_model`` existed loads too: the options it kept in
-        ``blur_field`` (lens, shake, margin, schedule, loss weights) and ``resolution_kernel_size`` move there."""
-        state = dict(state)
-        if "degradation_model" not in state:
-            blur = state.get("blur_field")
-            own, moved = split_legacy_blur_field_state(vars(blur) if blur is not None else {})
-            if blur is not None:
-                vars(blur).clear()
-                vars(blur).update(own)
-            if "resolution_kernel_size" in state:
-                moved["resolution_kernel_size"] = state.pop("resolution_kernel_size")
-            state["degradation_model"] = DegradationConfig(**moved)
-        self.__dict__.update(state)
+        """Loading a config.yml; one written before ``degradation_model`` existed loads too."""
+        self.__dict__.update(with_degradation_config(state))
 
 
 class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..io.atomic import atomic_dir
 from ..io.colmap import write_colmap_model
+from ..io.errors import require_free_space
 from ..io.images import write_image
 from .cameras import intrinsics, orbit_cameras, world_to_camera
 from .config import SynthSceneConfig
@@ -117,6 +118,11 @@ def generate_scene(
     cfg = config if config is not None else SynthSceneConfig()
     out = Path(out_dir).absolute()
     _check_target(out, overwrite)
+    # at most the raw pixels (PNG compresses them) and the float32 depth maps of every view, plus the model files
+    pixels = cfg.width * cfg.height * cfg.num_views
+    require_free_space(
+        out.parent, 7 * pixels + 2**20, "gsmsdr-synth", "Free some space, or choose --out on a disk with room."
+    )
     with atomic_dir(out) as tmp:
         _write_all(tmp, cfg, log or (lambda _msg: None))
         _check_target(out, overwrite)  # re-check: something may have appeared while we rendered
