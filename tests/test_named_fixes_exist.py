@@ -13,8 +13,6 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Dict, Iterator, List, Set, Tuple
 
-import pytest
-
 import gsmsdr_ns
 
 ROOT = Path(gsmsdr_ns.__file__).resolve().parent.parent

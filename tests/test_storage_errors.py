@@ -173,8 +173,10 @@ def test_the_free_space_check_names_what_is_needed(tmp_path, monkeypatch):
     monkeypatch.setattr(shutil, "disk_usage", lambda _p: usage._replace(free=3 * 2**20))
     with pytest.raises(DiskFullError) as caught:
         require_free_space(tmp_path / "not" / "yet", 10 * 2**20, "gsmsdr-process", "Choose another --out.")
-    assert str(caught.value) == (f"gsmsdr: no space left on the disk for gsmsdr-process: it needs about 10.0 MiB in "
-                                 f"'{tmp_path}', 3.0 MiB are free; nothing was written. Choose another --out.")  # fmt: skip
+    assert str(caught.value) == (
+        f"gsmsdr: no space left on the disk for gsmsdr-process: it needs about 10.0 MiB in '{tmp_path}', 3.0 MiB "
+        "are free; nothing was written. Choose another --out."
+    )
     require_free_space(tmp_path, 2 * 2**20, "x", "y")  # enough: no error
 
 
