@@ -44,6 +44,7 @@ def test_pose_errors_ignore_a_similarity_and_measure_what_is_left() -> None:
     assert 0.04 < errors.max_centre <= 0.05 and errors.max_rotation_deg < 0.5
 
 
+@pytest.mark.slow  # structure-from-motion of the shaken fern photos; the pose maths and the refusals stay in make test
 def test_benchmark_rows_for_the_strongly_shaken_small_fern(tmp_path: Path) -> None:
     """The small fern photos (252x189) shaken by ``motion-strong``, posed from the shaken photos alone: every one
     registers; at this size even the sharp photos' cameras are 2-4 % / 3-4 degrees off LLFF's (docs/results/sfm),

@@ -9,6 +9,7 @@ import dataclasses
 import re
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from functools import lru_cache
 from pathlib import Path
 from typing import Dict, Iterator, List, Set, Tuple
@@ -131,6 +132,8 @@ def help_text(command: str) -> str:
 def test_every_flag_a_message_or_the_docs_give_for_one_of_our_commands_exists():
     named = command_flags_in_messages()
     assert len(named) >= 10
+    with ThreadPoolExecutor(max_workers=4) as pool:  # each --help is mostly interpreter start-up
+        list(pool.map(help_text, sorted({command for command, _ in named})))
     missing = {
         f"{command} --{flag}": sorted(files)
         for (command, flag), files in sorted(named.items())
