@@ -10,6 +10,7 @@ import json
 import os
 import shutil
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Dict, Optional
 
@@ -613,11 +614,23 @@ def ground_truth_halves(renders: Path, width: int):
     return [pixels(p)[:, :width] for p in sorted(renders.glob("eval_img_*.png"))]
 
 
-def test_ns_train_and_eval_on_a_degraded_scene(synth16, tmp_path):
-    scene = make_deblur_scene(synth16, tmp_path / "blurry")
+@pytest.fixture(scope="module")
+def e2e_runs(synth16, tmp_path_factory) -> Dict[str, dict]:
+    """``ns-train`` then ``ns-eval`` on a degraded Deblur-NeRF scene and under the mixres protocol, the two at once
+    (each is mostly interpreter and nerfstudio start-up)."""
+    degraded = make_deblur_scene(synth16, tmp_path_factory.mktemp("e2e-deblur") / "blurry")
     for name in TEST_NAMES:  # make images/ differ from the twins: ns-eval must measure against images_test/
-        Image.fromarray(255 - pixels(scene / "images" / name)).save(scene / "images" / name)
-    run = train_and_eval(scene, "deblur-nerf-data", tmp_path)
+        Image.fromarray(255 - pixels(degraded / "images" / name)).save(degraded / "images" / name)
+    mixres = Path(shutil.copytree(synth16, tmp_path_factory.mktemp("e2e-mixres") / "mip360"))
+    jobs = {"deblur-nerf-data": degraded, "mixres-data": mixres}
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        futures = {name: pool.submit(train_and_eval, scene, name, scene.parent) for name, scene in jobs.items()}
+        return {name: {**future.result(), "scene": jobs[name]} for name, future in futures.items()}
+
+
+def test_ns_train_and_eval_on_a_degraded_scene(e2e_runs):
+    run = e2e_runs["deblur-nerf-data"]
+    scene = run["scene"]
     results = run["report"]["results"]
     assert run["report"]["method_name"] == "gsmsdr" and 5.0 < results["psnr"] < 60.0 and 0 < results["ssim"] <= 1
     truth = ground_truth_halves(run["renders"], 64)
@@ -626,9 +639,9 @@ def test_ns_train_and_eval_on_a_degraded_scene(synth16, tmp_path):
         np.testing.assert_allclose(image.astype(int), pixels(scene / "images_test" / name).astype(int), atol=1)
 
 
-def test_ns_train_and_eval_under_the_mixres_protocol(synth16, tmp_path):
-    scene = Path(shutil.copytree(synth16, tmp_path / "mip360"))
-    run = train_and_eval(scene, "mixres-data", tmp_path)
+def test_ns_train_and_eval_under_the_mixres_protocol(e2e_runs):
+    run = e2e_runs["mixres-data"]
+    scene = run["scene"]
     assert "mixed-resolution training views (seed 0)" in run["log"]
     assert (scene / ".gsmsdr_cache" / "mixres_seed0" / "manifest.json").is_file()
     assert 5.0 < run["report"]["results"]["psnr"] < 60.0
