@@ -7,6 +7,7 @@ import csv
 from pathlib import Path
 
 import pytest
+import torch
 
 from gsmsdr_ns.bench.cli import entrypoint
 from gsmsdr_ns.bench.step_cost import COLUMNS, StepCostSpec, measure_step_cost
@@ -22,14 +23,22 @@ def motion_scene(tmp_path_factory) -> Path:
 
 def test_the_command_times_every_method_and_writes_its_table(motion_scene, tmp_path, capsys):
     out = tmp_path / "out"
+    threads = torch.get_num_threads()
     entrypoint(["step", "--data", str(motion_scene), "--methods", "plain", "full", "--warmup", "1", "--steps", "2",
-                "--breakdown-steps", "1", "--out", str(out), "--work-dir", str(tmp_path / "work")])  # fmt: skip
+                "--breakdown-steps", "1", "--threads", "2", "1", "--out", str(out),
+                "--work-dir", str(tmp_path / "work")])  # fmt: skip
+    assert torch.get_num_threads() == threads  # the measurement's thread count does not outlive it
     printed = capsys.readouterr().out
     assert "Command: `gsmsdr-bench step --data" in printed and "device cpu" in printed
     with open(out / "results.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert [r["method"] for r in rows] == ["plain", "full"] and list(rows[0]) == list(COLUMNS)
-    plain, full = rows
+    assert [(r["method"], r["threads"]) for r in rows] == [("plain", "1"), ("full", "1"), ("plain", "2"), ("full", "2")]
+    assert list(rows[0]) == list(COLUMNS)
+    for one, two in zip(rows[:2], rows[2:]):  # each method against its own 1-thread step, ratios per thread count
+        assert float(one["speedup_vs_1_thread"]) == 1.0
+        assert float(two["speedup_vs_1_thread"]) == pytest.approx(float(one["step_ms"]) / float(two["step_ms"]))
+        assert float(two["ratio_to_first"]) == pytest.approx(float(two["step_ms"]) / float(rows[2]["step_ms"]))
+    plain, full = rows[:2]
     assert float(plain["ratio_to_first"]) == 1.0
     assert float(full["ratio_to_first"]) == pytest.approx(float(full["step_ms"]) / float(plain["step_ms"]))
     assert all(float(r["step_ms"]) > 0 for r in rows)

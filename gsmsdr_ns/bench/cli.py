@@ -143,6 +143,9 @@ class StepBench:
     with the blur field, the most expensive path)."""
     breakdown_steps: int = 0
     """Steps after the timed ones with the time breakdown per stage (they wait for the device at every stage)."""
+    threads: Tuple[int, ...] = (0,)
+    """Intra-op thread counts to measure each method at (torch's and our C++ kernels'); 0: torch's default. With 1
+    among them, the table gives each method's speed-up over its 1-thread step."""
     out: Path = Path("bench-results") / "step"
     """Folder of results.md and results.csv."""
     work_dir: Path = Path(tempfile.gettempdir()) / "gsmsdr-bench-step"
@@ -154,8 +157,11 @@ class StepBench:
         from gsmsdr_ns.bench.machine import describe_machine, machine_info
         from gsmsdr_ns.bench.step_cost import StepCostSpec, format_table, run_step_cost, write_results
 
-        specs = [StepCostSpec(m, d, self.warmup, self.steps, self.estimate, breakdown_steps=self.breakdown_steps)
-                 for d in self.data for m in self.methods]  # fmt: skip
+        if any(n < 0 for n in self.threads):
+            raise SystemExit(f"gsmsdr-bench step: --threads must be >= 0 (0: torch's default), got {self.threads}")
+        specs = [StepCostSpec(m, d, self.warmup, self.steps, self.estimate, breakdown_steps=self.breakdown_steps,
+                              threads=n)
+                 for d in self.data for n in sorted(self.threads) for m in self.methods]  # fmt: skip
         rows = run_step_cost(specs, self.work_dir, log=print)
         command = "gsmsdr-bench " + " ".join(shlex.quote(a) for a in _invocation_args())
         header = (

@@ -24,9 +24,11 @@ import torch
 
 from gsmsdr_ns.io.atomic import write_text_atomic
 
-COLUMNS = ("method", "scene", "size", "records", "device", "warmup", "steps", "step_ms", "ratio_to_first",
-           "peak_mb", "run_peak_mb", "num_gaussians", "blurred_views", "breakdown_steps", "breakdown_ms")  # fmt: skip
-"""Columns of results.csv, in order (``ratio_to_first``: step time over the first method's on the same scene)."""
+COLUMNS = ("method", "scene", "size", "records", "device", "threads", "warmup", "steps", "step_ms", "ratio_to_first",
+           "speedup_vs_1_thread", "peak_mb", "run_peak_mb", "num_gaussians", "blurred_views", "breakdown_steps",
+           "breakdown_ms")  # fmt: skip
+"""Columns of results.csv, in order (``ratio_to_first``: step time over the first method's on the same scene and
+thread count; ``speedup_vs_1_thread``: the same method's 1-thread step time over this row's, when both ran)."""
 
 
 @dataclass(frozen=True)
@@ -49,6 +51,8 @@ class StepCostSpec:
     breakdown_steps: int = 0
     """Steps run after the timed ones with the bench's time breakdown (:class:`TimingRecorder`, which waits for the
     device at every stage boundary, so these steps are slower than the timed ones): ms per step per stage."""
+    threads: int = 0
+    """torch's (and our C++ kernels' OpenMP) intra-op threads for this measurement; 0: torch's default."""
 
 
 def _config(spec: StepCostSpec, work_dir: Path):
@@ -79,6 +83,9 @@ def measure_step_cost(spec: StepCostSpec, work_dir: Path) -> Dict[str, object]:
 
     if spec.warmup < 1 or spec.steps < 1:
         raise ValueError(f"warmup and steps must be >= 1, got {spec.warmup} and {spec.steps}")
+    threads_before = torch.get_num_threads()
+    if spec.threads > 0:
+        torch.set_num_threads(spec.threads)  # also OpenMP's, which our C++ kernels use
     memory = PeakMemory()
     memory.reset()
     run = InProcessRun(_config(spec, work_dir), seed=spec.seed)
@@ -113,10 +120,12 @@ def measure_step_cost(spec: StepCostSpec, work_dir: Path) -> Dict[str, object]:
             "size": f"{int(cameras.width[0])}x{int(cameras.height[0])}",
             "records": "scene's, else estimated" if spec.estimate else "scene's, else none (blur path)",
             "device": f"cuda ({gpu})" if gpu else device.type,
+            "threads": torch.get_num_threads(),
             "warmup": spec.warmup,
             "steps": spec.steps,
             "step_ms": 1000.0 * seconds / spec.steps,
             "ratio_to_first": float("nan"),
+            "speedup_vs_1_thread": float("nan"),
             "peak_mb": peak,
             "run_peak_mb": run_peak if device.type == "cuda" else float("nan"),
             "num_gaussians": int(model.num_points),
@@ -126,6 +135,7 @@ def measure_step_cost(spec: StepCostSpec, work_dir: Path) -> Dict[str, object]:
         }
     finally:
         run.close()
+        torch.set_num_threads(threads_before)
         if torch.cuda.is_available():
             torch.cuda.empty_cache()
 
@@ -133,17 +143,25 @@ def measure_step_cost(spec: StepCostSpec, work_dir: Path) -> Dict[str, object]:
 def run_step_cost(
     specs: Sequence[StepCostSpec], work_dir: Path, log: Optional[Callable[[str], None]] = None
 ) -> List[Dict[str, object]]:
-    """Measure every spec in order; ``ratio_to_first`` is each row's step time over the first row of its scene."""
+    """Measure every spec in order; ``ratio_to_first`` is each row's step time over the first row of its scene (and
+    thread count), ``speedup_vs_1_thread`` the same method's 1-thread time over its own (1-thread rows first)."""
     rows: List[Dict[str, object]] = []
     first_ms: Dict[str, float] = {}
+    one_thread_ms: Dict[str, float] = {}
     for spec in specs:
         row = measure_step_cost(spec, work_dir)
-        key = f"{row['scene']}|{row['records']}"
+        key = f"{row['scene']}|{row['records']}|{row['threads']}"
         first_ms.setdefault(key, float(row["step_ms"]))
         row["ratio_to_first"] = float(row["step_ms"]) / first_ms[key]
+        method_key = f"{row['scene']}|{row['records']}|{row['method']}"
+        if row["threads"] == 1:
+            one_thread_ms[method_key] = float(row["step_ms"])
+        if method_key in one_thread_ms:
+            row["speedup_vs_1_thread"] = one_thread_ms[method_key] / float(row["step_ms"])
         rows.append(row)
         if log is not None:
-            log(f"step: {row['scene']} {row['method']}: {row['step_ms']:.1f} ms/step, peak {row['peak_mb']:.0f} MiB")
+            log(f"step: {row['scene']} {row['method']} ({row['threads']} thread(s)): {row['step_ms']:.1f} ms/step, "
+                f"peak {row['peak_mb']:.0f} MiB")  # fmt: skip
     return rows
 
 
@@ -151,15 +169,17 @@ def format_table(rows: Sequence[Dict[str, object]], header: str = "") -> str:
     """A markdown table of :func:`run_step_cost` rows, under ``header``."""
     lines = [header, ""] if header else []
     lines += [
-        "| scene | size | records | method | ms/step | x first | peak MiB (timed) | peak MiB (run) | Gaussians "
-        "| views with a blur model |",
-        "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| scene | size | records | method | threads | ms/step | x first | speed-up vs 1 thread | peak MiB (timed) "
+        "| peak MiB (run) | Gaussians | views with a blur model |",
+        "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for r in rows:
+        speedup = float(r["speedup_vs_1_thread"])
         lines.append(
-            f"| {r['scene']} | {r['size']} | {r['records']} | {r['method']} | {float(r['step_ms']):.1f} "
-            f"| {float(r['ratio_to_first']):.2f} | {max(float(r['peak_mb']), 0.0):.0f} | {float(r['run_peak_mb']):.0f} "
-            f"| {r['num_gaussians']} | {r['blurred_views']} |"
+            f"| {r['scene']} | {r['size']} | {r['records']} | {r['method']} | {r['threads']} "
+            f"| {float(r['step_ms']):.1f} | {float(r['ratio_to_first']):.2f} | "
+            f"{'-' if speedup != speedup else f'{speedup:.2f}'} | {max(float(r['peak_mb']), 0.0):.0f} "
+            f"| {float(r['run_peak_mb']):.0f} | {r['num_gaussians']} | {r['blurred_views']} |"
         )
     broken_down = [r for r in rows if r.get("breakdown_ms")]
     if broken_down:
