@@ -189,7 +189,7 @@ def format_table(rows: Sequence[Dict[str, object]], header: str = "") -> str:
             "synchronised at every stage boundary):",
             "",
         ]
-        lines += [f"- {r['scene']} {r['method']}: {r['breakdown_ms']}" for r in broken_down]
+        lines += [f"- {r['scene']} {r['method']} ({r['threads']} thread(s)): {r['breakdown_ms']}" for r in broken_down]
     return "\n".join(lines) + "\n"
 
 
