@@ -17,7 +17,7 @@ from gsmsdr_ns.blur.degradation_config import DegradationConfig
 from gsmsdr_ns.blur.degradation_model import DegradationModel
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo, kernel_prior_logits, kernel_upsample_matrix
-from gsmsdr_ns.blur.losses import DegradationAux, DegradationLossWeights, degradation_losses, mask_regulariser
+from gsmsdr_ns.blur.losses import DegradationAux, degradation_losses, mask_regulariser
 from gsmsdr_ns.blur.maan import GAKA, MCA, SAFM, BAGSFeatures, RGBDFeatures, normalize_depth, positional_encoding_2d
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, effective_factor
 from gsmsdr_ns.ops.mixres import resolution_loss
@@ -265,7 +265,7 @@ def test_shared_dict_hooks():
     assert set(paper) == {"blur_field"}
     mask = torch.full((4, 4, 1), 0.5)
     image = torch.zeros(4, 4, 3)
-    weights = DegradationLossWeights(mask=0.001)
+    weights = DegradationConfig(mask_reg_weight=0.001).loss_weights
     losses = degradation_losses(DegradationAux(image, mask, learnt_mask=True), image, None, weights)
     torch.testing.assert_close(losses["blur_mask_reg"], torch.tensor(0.0005))
     assert degradation_losses(DegradationAux(image), image, None, weights) == {}  # the field did not run
@@ -296,9 +296,10 @@ def test_kernel_centre_regulariser():
     centroids[0, 0] = 2.0  # every kernel two rows off its pixel
     image = torch.zeros(3, 3, 3)
     aux = DegradationAux(image, kernel_centroids=centroids)
-    losses = degradation_losses(aux, image, None, DegradationLossWeights(kernel_centre=0.5))
+    losses = degradation_losses(aux, image, None, DegradationConfig(kernel_centre_weight=0.5).loss_weights)
     torch.testing.assert_close(losses["blur_kernel_centre"], torch.tensor(2.0))  # 0.5 * 2^2
-    assert degradation_losses(aux, image, None, DegradationLossWeights(kernel_centre=0.0)) == {}  # 0: off
+    off = DegradationConfig(kernel_centre_weight=0.0).loss_weights
+    assert degradation_losses(aux, image, None, off) == {}  # 0: off
     with pytest.raises(ValueError, match="kernel_centre_weight"):
         DegradationConfig(kernel_centre_weight=-1.0)
 

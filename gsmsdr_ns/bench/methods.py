@@ -105,10 +105,10 @@ class MethodSpec:
             return dict(GAKA=False, SAFM=False, MCA=False, RGBD=False, HPKO=False)
         if self.base != "gsmsdr":
             return None
+        from gsmsdr_ns.blur.degradation_config import DegradationConfig
         from gsmsdr_ns.blur.field import BlurFieldConfig
 
-        field_options = {k: v for k, v in self.overrides if k in {f.name for f in dataclasses.fields(BlurFieldConfig)}}
-        mods = BlurFieldConfig(**field_options).modules
+        mods = apply_overrides(BlurFieldConfig(), DegradationConfig(), dict(self.overrides))[0].modules
         return dict(GAKA=mods.gaka, SAFM=mods.safm, MCA=mods.mca, RGBD=mods.rgbd, HPKO=mods.hpko)
 
 

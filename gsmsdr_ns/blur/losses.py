@@ -48,15 +48,16 @@ class DegradationAux(NamedTuple):
 
 @dataclass(frozen=True)
 class DegradationLossWeights:
-    """Weights of the degradation model's loss terms (0: the term is off)."""
+    """Weights of the degradation model's loss terms (0: the term is off), as ``DegradationConfig.loss_weights``
+    gives them."""
 
-    mask: float = 0.001
+    mask: float
     """Mask regulariser mean(m)."""
-    kernel_centre: float = 1.0
+    kernel_centre: float
     """Kernel-centre regulariser mean(|c|^2)."""
-    deconvolved: float = 10.0
+    deconvolved: float
     """Deconvolved residual (:mod:`gsmsdr_ns.ops.deconvolved_loss`)."""
-    deconvolved_eps: float = 0.01
+    deconvolved_eps: float
     """Wiener regulariser of the deconvolved residual's weight."""
 
 

@@ -23,6 +23,8 @@ from kornia.filters import filter2d
 from kornia.geometry.transform import warp_perspective
 from torch import Tensor, nn
 
+from ..ops.checks import check_image
+
 __all__ = [
     "disk_kernel",
     "motion_kernel_from_trajectory",
@@ -40,12 +42,6 @@ __all__ = [
     "RotationalShakeBlur",
     "LayeredDefocus",
 ]
-
-
-def _check_image(image: Tensor, name: str = "image") -> None:
-    if not isinstance(image, Tensor) or image.dim() != 4:
-        shape = tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__
-        raise ValueError(f"{name} must be a tensor [B, C, H, W], got {shape}")
 
 
 def _as_tensor(x: Tensor | np.ndarray | Sequence, dtype: torch.dtype = torch.float64) -> Tensor:
@@ -133,7 +129,7 @@ def convolve_psf(
     border_type: str = "reflect",
 ) -> Tensor:
     """Spatially uniform blur: convolution (not correlation) of every channel with a PSF. -> [B, C, H, W]."""
-    _check_image(image)
+    check_image(image)
     if kernel.dim() == 2:
         kernel = kernel[None]
     if kernel.dim() != 3 or kernel.shape[0] not in (1, image.shape[0]) or kernel.shape[-1] % 2 == 0:
@@ -183,7 +179,7 @@ def homography_blur(
     Bilinear sampling; pixels mapped from outside the source use `padding_mode` (kornia / grid_sample).
     dsize: (H_out, W_out), default the input size. -> [B, C, H_out, W_out]
     """
-    _check_image(image)
+    check_image(image)
     H = _as_tensor(homographies)
     if H.dim() != 3 or H.shape[1:] != (3, 3) or H.shape[0] < 1:
         raise ValueError(f"homographies must be [T, 3, 3] with T >= 1, got {tuple(H.shape)}")
@@ -288,7 +284,7 @@ def apply_defocus(
     into a blurred background), and layers are composited back to front with "over". The result is normalised by
     the accumulated alpha (renormalising at the image border and at layer seams). -> [B, C, H, W]
     """
-    _check_image(image)
+    check_image(image)
     B, C, H, W = image.shape
     if signed_radius.shape != (B, 1, H, W):
         raise ValueError(f"signed_radius must be [B, 1, H, W] = {(B, 1, H, W)}, got {tuple(signed_radius.shape)}")
@@ -335,7 +331,7 @@ def add_noise(image: Tensor, sigma: float, gain: float = 0.0, generator: torch.G
 
     gain = 0 is plain Gaussian noise of std sigma. The result is clipped to [0, 1]. [B, C, H, W] -> same.
     """
-    _check_image(image)
+    check_image(image)
     if sigma < 0 or gain < 0:
         raise ValueError(f"sigma and gain must be >= 0, got {sigma}, {gain}")
     n = torch.randn(image.shape, generator=generator, dtype=image.dtype)

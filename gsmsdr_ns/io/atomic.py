@@ -23,7 +23,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Callable, Iterator, List, Optional
 
-from gsmsdr_ns.io.errors import DiskFullError, disk_full_cause, format_bytes, free_space_text
+from gsmsdr_ns.io.errors import DiskFullError, disk_full_cause, disk_full_error, format_bytes, free_space_text
 
 STALE_AFTER_S = 60.0
 """A temporary of a process that no longer runs is removed only once untouched this long (a process of another
@@ -132,12 +132,11 @@ def write_file_atomic(path: Path, write: Callable[[Path], Any], size: Optional[i
 def _file_disk_full(path: Path, error: OSError, size: Optional[int], written: int) -> DiskFullError:
     """The one-line error of a file that did not fit: its name, the room it needs, the room there is."""
     needs = f"it needs {format_bytes(size)}" if size is not None else f"it needs more than {format_bytes(written)}"
-    full = DiskFullError(
+    return disk_full_error(
         f"gsmsdr: no space left on the disk writing '{path}' ({needs}, {free_space_text(path.parent)}); it was not "
-        "written. Free some space, or write to a disk with room."
+        "written. Free some space, or write to a disk with room.",
+        error.errno,
     )
-    full.errno = error.errno  # without strerror or filename, which would make str() the "[Errno 28] ..." form
-    return full
 
 
 def _make_parents(folder: Path) -> List[Path]:

@@ -49,6 +49,14 @@ class DiskFullError(OSError):
     """No space left for an output; the message names the file and says how to free space or write elsewhere."""
 
 
+def disk_full_error(message: str, error_number: int = errno.ENOSPC) -> DiskFullError:
+    """A :class:`DiskFullError` that prints as ``message`` alone: its errno is set afterwards, without strerror or
+    filename, which would turn str() into the ``[Errno 28] ...`` form."""
+    error = DiskFullError(message)
+    error.errno = error_number
+    return error
+
+
 def disk_full_cause(exc: BaseException) -> Optional[OSError]:
     """The OSError of a full disk behind ``exc`` (itself, or in its ``__cause__`` / ``__context__`` chain), else None.
 
@@ -96,10 +104,6 @@ def _existing(folder: Path) -> Path:
 
 def free_space_text(folder: Path) -> str:
     """``"1.2 GiB free in '<folder>'"`` for ``folder`` (or its nearest existing parent)."""
-    return _format_free(folder)
-
-
-def _format_free(folder: Path) -> str:
     folder = _existing(folder)
     try:
         return f"{format_bytes(shutil.disk_usage(folder).free)} free in '{folder}'"
@@ -117,12 +121,10 @@ def require_free_space(folder: Path, needed: int, what: str, fix: str) -> None:
     except OSError:
         return
     if free < needed:
-        error = DiskFullError(
+        raise disk_full_error(
             f"gsmsdr: no space left on the disk for {what}: it needs about {format_bytes(needed)} in '{folder}', "
             f"{format_bytes(free)} are free; nothing was written. {fix}"
         )
-        error.errno = errno.ENOSPC
-        raise error
 
 
 def storage_error_line(exc: BaseException) -> Optional[str]:
@@ -137,7 +139,7 @@ def storage_error_line(exc: BaseException) -> Optional[str]:
     if full is not None:
         target = Path(full.filename) if full.filename else None
         where = f"writing '{target}'" if target else "writing its output"
-        free = _format_free(target.parent if target else Path.cwd())
+        free = free_space_text(target.parent if target else Path.cwd())
         return f"gsmsdr: no space left on the disk {where} ({free}). Free some space, or write to a disk with room."
     refused = _oserror_in_chain(exc, WRITE_REFUSED_ERRNOS)
     if refused is not None and refused.filename:

@@ -10,13 +10,9 @@ from __future__ import annotations
 from kornia.geometry.transform import resize
 from torch import Tensor
 
+from gsmsdr_ns.ops.checks import check_image
+
 __all__ = ["apply_mixres", "resolution_loss"]
-
-
-def _check_image(image: Tensor) -> None:
-    if not isinstance(image, Tensor) or image.dim() != 4:
-        shape = tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__
-        raise ValueError(f"image must be a tensor [B, C, H, W], got {shape}")
 
 
 def _down_up(image: Tensor, factor: float, upsample: str) -> Tensor:
@@ -32,7 +28,7 @@ def apply_mixres(image: Tensor, factor: int, upsample: str = "bilinear") -> Tens
 
     factor 1 returns the image unchanged; anything but an integer >= 1 raises ValueError.
     """
-    _check_image(image)
+    check_image(image)
     if int(factor) != factor or factor < 1:
         raise ValueError(f"mixres factor must be an integer >= 1, got {factor}")
     return image if factor == 1 else _down_up(image, int(factor), upsample)
@@ -41,5 +37,5 @@ def apply_mixres(image: Tensor, factor: int, upsample: str = "bilinear") -> Tens
 def resolution_loss(image: Tensor, factor: float, upsample: str = "bilinear") -> Tensor:
     """The same operator at any factor (a known factor seen by a coarser render, e.g. 3 at 1/2 resolution, is 1.5).
     [B, C, H, W] -> [B, C, H, W]; ``factor <= 1`` returns ``image``."""
-    _check_image(image)
+    check_image(image)
     return image if factor <= 1 else _down_up(image, float(factor), upsample)

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from gsmsdr_ns.io.atomic import remove_stale_temporaries
-from gsmsdr_ns.io.errors import DiskFullError, InputError, disk_full_cause, format_bytes
+from gsmsdr_ns.io.errors import DiskFullError, InputError, disk_full_cause, disk_full_error, format_bytes
 
 
 def checkpoint_safe_globals() -> List[object]:
@@ -199,14 +199,13 @@ def _disk_full_error(path: Path, error: OSError, needed: int) -> DiskFullError:
         free = f"{format_bytes(shutil.disk_usage(path.parent).free)} free"
     except OSError:
         free = "free space unknown"
-    full = DiskFullError(
+    return disk_full_error(
         f"gsmsdr: no space left on the disk to save checkpoint '{path}' (it needs about {format_bytes(needed)}, "
         f"{free}); nothing was written, the "
         f"checkpoints already in '{path.parent}' are kept. Free some space, or train with --output-dir on a disk "
-        f"with room (resume with --load-dir {path.parent})."
+        f"with room (resume with --load-dir {path.parent}).",
+        error.errno,
     )
-    full.errno = error.errno  # without strerror, which would make str() the "[Errno 28] ..." form
-    return full
 
 
 def save_checkpoint_atomic(payload: Mapping[str, Any], path: Path) -> Path:
