@@ -185,8 +185,8 @@ def test_a_new_estimate_that_changes_no_record_keeps_the_runs_record(built, tmp_
     is re-keyed when only the estimate's fingerprint changed and the records it trained on are the same; it is rerun
     when they differ."""
     import gsmsdr_ns.estimate.records as records
+    from gsmsdr_ns.bench.ledger import plan_runs, rekey_unchanged_estimates, training_records_digest
     from gsmsdr_ns.bench.records import load_record, record_path, write_json_atomic
-    from gsmsdr_ns.bench.runner import plan_runs, rekey_unchanged_estimates, training_records_digest
 
     suite, work, out = built["suite"], built["work"], tmp_path / "out"
     key = RunKey("fern6-motion", "full", 20, 0)
@@ -287,7 +287,8 @@ def test_registered_test_poses_agree_with_the_sharp_run(built) -> None:
 
 @pytest.mark.slow
 def test_real_suite_end_to_end(photo_set, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from gsmsdr_ns.bench.runner import run_suite, training_records_digest
+    from gsmsdr_ns.bench.ledger import training_records_digest
+    from gsmsdr_ns.bench.runner import run_suite
 
     monkeypatch.setenv(DATA_DIR_ENV, str(photo_set))
     config = tmp_path / "real-tiny.yaml"

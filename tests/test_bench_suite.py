@@ -219,7 +219,7 @@ def test_runs_with_the_same_training_train_once(tmp_path: Path) -> None:
     """The sharp upper bound of two scenes made from the same sharp scene trains once; the other run gets a copy of
     its record (its own id and fingerprint), and a rerun reuses both. Real training, tiny scenes."""
     from gsmsdr_ns.bench.fingerprint import training_identity
-    from gsmsdr_ns.bench.runner import plan_runs
+    from gsmsdr_ns.bench.ledger import plan_runs
 
     suite = load_suite(write_suite(tmp_path, SHARED_TRAINING_SUITE))
     out = tmp_path / "out"

@@ -195,6 +195,13 @@ class SuiteBench:
     """Show progress bars."""
     interrupt_after: Optional[int] = None
     """Stop as Ctrl-C would (SIGINT to this process) after this many trained runs; the suite resumes on a rerun."""
+    ray: Optional[str] = None
+    """Run every run as a task on Ray (the `ray` extra): local (a local instance on all cores), local:N (on N
+    cores), auto (the cluster `ray start --head` started on this machine) or a cluster address HOST:PORT. Default:
+    one run after another in this process."""
+    kill_worker_at: Optional[str] = None
+    """Fault drill under --ray, RUN_ID:STEP: that run's worker process kills itself at that step of its first
+    attempt; Ray starts the run again."""
 
     def main(self) -> None:
         import shlex
@@ -219,8 +226,13 @@ class SuiteBench:
         command = "gsmsdr-bench " + " ".join(shlex.quote(a) for a in _invocation_args())
         started = time.perf_counter()
         try:
-            outcome = run_suite(suite, out, command=command, progress=self.progress, plots=self.plots,
-                                interrupt_after=self.interrupt_after)  # fmt: skip
+            if self.ray is None:
+                if self.kill_worker_at is not None:
+                    raise SystemExit("gsmsdr-bench suite: --kill-worker-at is a fault drill for --ray runs")
+                outcome = run_suite(suite, out, command=command, progress=self.progress, plots=self.plots,
+                                    interrupt_after=self.interrupt_after)  # fmt: skip
+            else:
+                outcome = self._run_on_ray(suite, out, command)
         except KeyboardInterrupt:
             raise SystemExit(130) from None
         print(main_tables((out / "results.md").read_text(encoding="utf8")))
@@ -235,6 +247,22 @@ class SuiteBench:
             print("published " + ", ".join(str(p) for p in publish_outputs(out, self.publish, outcome.outputs)))
         if outcome.failed:
             raise SystemExit(1)
+
+    def _run_on_ray(self, suite, out: Path, command: str):
+        from gsmsdr_ns.bench.ray_runner import RaySetupError, run_suite_on_ray
+
+        drill = None
+        if self.kill_worker_at is not None:
+            run_id, _, step = self.kill_worker_at.rpartition(":")
+            if not run_id or not step.isdigit() or int(step) < 1:
+                raise SystemExit(f"gsmsdr-bench suite: --kill-worker-at {self.kill_worker_at}: expected RUN_ID:STEP "
+                                 "with STEP >= 1, e.g. motion__full__1000__s0:300")  # fmt: skip
+            drill = (run_id, int(step))
+        try:
+            return run_suite_on_ray(suite, out, self.ray, command=command, progress=self.progress, plots=self.plots,
+                                    interrupt_after=self.interrupt_after, kill_worker_at=drill)  # fmt: skip
+        except RaySetupError as e:
+            raise SystemExit(f"gsmsdr-bench suite: {e}") from None
 
 
 @dataclass

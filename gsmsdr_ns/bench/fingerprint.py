@@ -32,7 +32,7 @@ def preset_fingerprint(method: MethodSpec) -> str:
 
 def fingerprint(suite: Suite, key: RunKey, estimate: bool = True) -> str:
     """What a record's numbers depend on; a record whose fingerprint differs is rerun. ``estimate=False`` leaves
-    out the estimate's fingerprint (the part :func:`gsmsdr_ns.bench.runner.rekey_unchanged_estimates` may forgive)."""
+    out the estimate's fingerprint (the part :func:`gsmsdr_ns.bench.ledger.rekey_unchanged_estimates` may forgive)."""
     method = METHODS[key.method]
     payload = {
         "version": RECORD_VERSION,

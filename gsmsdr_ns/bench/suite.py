@@ -9,8 +9,10 @@ The suite's parts, one job per module:
 * :mod:`gsmsdr_ns.bench.scenes`: generated scenes; :mod:`gsmsdr_ns.bench.training`: in-process training with one
   :class:`gsmsdr_ns.plugin.schedule.TrainingSchedule`; :mod:`gsmsdr_ns.bench.evaluation`: the one evaluation
   definition (PSNR, scikit-image SSIM, LPIPS when cached);
-* :mod:`gsmsdr_ns.bench.runner`: running a suite, resuming it; :mod:`gsmsdr_ns.bench.records`: the run records
-  (writing, loading, collecting those that match); :mod:`gsmsdr_ns.bench.fingerprint`: what a record depends on;
+* :mod:`gsmsdr_ns.bench.runner`: running a suite in this process; :mod:`gsmsdr_ns.bench.ray_runner`: on a Ray
+  cluster; :mod:`gsmsdr_ns.bench.ledger`: what both record (the plan, resuming, records and outputs after each
+  run); :mod:`gsmsdr_ns.bench.records`: the run records (writing, loading, collecting those that match);
+  :mod:`gsmsdr_ns.bench.fingerprint`: what a record depends on;
 * :mod:`gsmsdr_ns.bench.report`: results.csv, results.md, plots (:mod:`gsmsdr_ns.bench.plots`), publishing them into
   ``docs/results/<suite>/``.
 
@@ -21,10 +23,11 @@ from __future__ import annotations
 
 from gsmsdr_ns.bench.evaluation import evaluate_test_views, make_lpips
 from gsmsdr_ns.bench.fingerprint import fingerprint
+from gsmsdr_ns.bench.ledger import SuiteOutcome
 from gsmsdr_ns.bench.methods import METHODS, MethodSpec
 from gsmsdr_ns.bench.records import collect_records, finished_record, record_path
 from gsmsdr_ns.bench.report import format_markdown, main_tables, publish_outputs, write_outputs
-from gsmsdr_ns.bench.runner import SuiteOutcome, run_suite, train_and_record
+from gsmsdr_ns.bench.runner import run_suite, train_and_record
 from gsmsdr_ns.bench.suite_config import RunKey, SceneEntry, Suite, SuiteConfigError, find_suite_file, load_suite
 
 __all__ = [

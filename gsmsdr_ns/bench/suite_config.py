@@ -139,6 +139,18 @@ class RunKey:
         return f"{self.scene}__{self.method}__{self.steps}__s{self.seed}"
 
 
+@dataclass(frozen=True)
+class RaySettings:
+    """What each run of a suite asks a Ray cluster for (``gsmsdr-bench suite --ray``); no effect on the numbers."""
+
+    num_cpus: Optional[float] = None
+    """CPUs per run (None: the suite's ``threads``, or 1 when that is 0)."""
+    num_gpus: Optional[float] = None
+    """GPUs per run (None: 1 when the cluster has GPUs, else 0; a run given no GPU trains on the CPU)."""
+    max_retries: int = 2
+    """Times a run whose worker process or node died is started again (a run that raises is not retried)."""
+
+
 @dataclass
 class Suite:
     """A benchmark suite (see ``configs/bench/quick.yaml`` for the keys)."""
@@ -166,6 +178,8 @@ class Suite:
     come from the degraded photos' structure-from-motion)."""
     description: str = ""
     """Free text for the results header."""
+    ray: RaySettings = field(default_factory=RaySettings)
+    """Resources and retries of each run under ``gsmsdr-bench suite --ray``."""
     scene_root: Optional[Path] = None
     """Generated scenes go to ``<scene_root>/scenes/<name>`` (None: the output folder)."""
     source: Optional[Path] = None
@@ -203,7 +217,7 @@ def schedule_settings(schedule: TrainingSchedule) -> Dict[str, Any]:
 
 
 _SUITE_KEYS = {"name", "description", "scenes", "scene_defaults", "methods", "steps", "seeds", "eval_every",
-               "schedule", "threads", "lpips", "align_poses", "scene_root"}  # fmt: skip
+               "schedule", "threads", "lpips", "align_poses", "scene_root", "ray"}  # fmt: skip
 _SCENE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
 
 
@@ -330,6 +344,27 @@ def _check_schedule(schedule: Any, source: Path) -> Dict[str, Any]:
     return out
 
 
+def _parse_ray(values: Any, source: Path) -> RaySettings:
+    """The ``ray:`` mapping -> :class:`RaySettings`."""
+    if values is None:
+        return RaySettings()
+    if not isinstance(values, dict):
+        raise _fail(source, "ray", "must be a mapping of num_cpus, num_gpus, max_retries")
+    out: Dict[str, Any] = {}
+    for k, v in values.items():
+        if k not in ("num_cpus", "num_gpus", "max_retries"):
+            raise _fail(source, f"ray.{k}", "unknown key; valid: num_cpus, num_gpus, max_retries")
+        if k == "max_retries":
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise _fail(source, f"ray.{k}", f"must be an integer >= 0, got {v!r}")
+        elif v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or v < 0
+                                or (k == "num_cpus" and v == 0)):  # fmt: skip
+            low = "> 0" if k == "num_cpus" else ">= 0"
+            raise _fail(source, f"ray.{k}", f"must be a number {low} or null, got {v!r}")
+        out[k] = v
+    return RaySettings(**out)
+
+
 def load_suite(path: str | Path) -> Suite:
     """Read and validate a suite YAML file; errors are :class:`SuiteConfigError` naming the file and the key."""
     source = Path(path)
@@ -397,6 +432,7 @@ def load_suite(path: str | Path) -> Suite:
         threads=threads,
         lpips=lpips,
         align_poses=align_poses,
+        ray=_parse_ray(values.get("ray"), source),
         description=str(values.get("description", "")).strip(),
         scene_root=None if scene_root is None else Path(os.path.expanduser(scene_root)),
         source=source,
@@ -424,6 +460,7 @@ def find_suite_file(name_or_path: str | Path) -> Path:
 
 
 __all__ = [
+    "RaySettings",
     "RunKey",
     "SceneEntry",
     "Suite",
