@@ -84,6 +84,10 @@ BAD_SUITES = [
         "resolution_fraction",
     ),  # fmt: skip
     ("bad eval interval", TINY_SUITE.replace("eval_every: 10", "eval_every: often"), "eval_every"),
+    ("bad init", TINY_SUITE.replace("[motion]", "[{variant: motion, init: zero}]"), "scenes[0].init"),
+    ("unknown ray key", TINY_SUITE + "ray: {num_cpu: 1}\n", "ray.num_cpu"),
+    ("no CPUs per Ray run", TINY_SUITE + "ray: {num_cpus: 0}\n", "ray.num_cpus"),
+    ("negative Ray retries", TINY_SUITE + "ray: {max_retries: -1}\n", "ray.max_retries"),
     ("not a mapping", "- just\n- a list\n", "must be a YAML mapping"),
     ("not YAML", "name: [unclosed\n", "not valid YAML"),
 ]
@@ -96,6 +100,41 @@ def test_invalid_suite_names_file_and_key(tmp_path: Path, label: str, text: str,
         load_suite(path)
     message = str(info.value)
     assert str(path) in message and key in message, message
+
+
+def test_random_init_is_a_scene_setting_of_its_own(tmp_path: Path) -> None:
+    """``init: random`` starts the Gaussians from random points: its runs have records of their own (fingerprint,
+    training identity) on the same scene folder, and the others keep their fingerprints."""
+    from gsmsdr_ns.bench.fingerprint import training_identity
+    from gsmsdr_ns.plugin.method_config import gsmsdr_trainer_config
+
+    text = TINY_SUITE.replace("[motion]", "[motion, {variant: motion, name: motion-random, init: random}]")
+    suite = load_suite(write_suite(tmp_path, text))
+    sparse, random = suite.scene("motion"), suite.scene("motion-random")
+    assert not sparse.random_init and random.random_init and "random points" in random.describe()
+    method = METHODS["full"]
+    assert sparse.folder_key(method) == random.folder_key(method)  # the same images
+    plain_key, random_key = RunKey("motion", "full", 20, 0), RunKey("motion-random", "full", 20, 0)
+    assert fingerprint(suite, plain_key) != fingerprint(suite, random_key)
+    assert training_identity(suite, plain_key) != training_identity(suite, random_key)
+    before = load_suite(write_suite(tmp_path, TINY_SUITE, "before.yaml"))
+    assert fingerprint(before, plain_key) == fingerprint(suite, plain_key)
+    config = gsmsdr_trainer_config()
+    sparse.configure(config)
+    assert config.pipeline.model.random_init is False
+    random.configure(config)
+    assert config.pipeline.model.random_init is True
+
+
+def test_ray_settings_do_not_change_the_records(tmp_path: Path) -> None:
+    """What a run asks a Ray cluster for changes no number: the records and their fingerprints stay the same."""
+    plain = load_suite(write_suite(tmp_path, TINY_SUITE, "a.yaml"))
+    on_ray = load_suite(write_suite(tmp_path, TINY_SUITE + "ray: {num_cpus: 2, num_gpus: 0.5, max_retries: 4}\n",
+                                    "b.yaml"))  # fmt: skip
+    assert (on_ray.ray.num_cpus, on_ray.ray.num_gpus, on_ray.ray.max_retries) == (2, 0.5, 4)
+    assert plain.ray.num_cpus is None and plain.ray.max_retries == 2
+    for key in plain.runs():
+        assert fingerprint(plain, key) == fingerprint(on_ray, key)
 
 
 def test_suite_schedule_reaches_the_training_schedule(tmp_path: Path) -> None:

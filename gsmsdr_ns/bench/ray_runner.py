@@ -141,7 +141,7 @@ def build_unit(suite: Suite, key: RunKey) -> Optional[Tuple[str, str]]:
     scene, method = suite.scene(key.scene), METHODS[key.method]
     if not scene.generated:
         return None
-    folder = json.dumps(scene.data_key(method), sort_keys=True, default=str)
+    folder = json.dumps(scene.folder_key(method), sort_keys=True, default=str)
     return (f"real {scene.real.photos_name} s{scene.real.seed}" if scene.real is not None else folder), folder
 
 
@@ -280,6 +280,10 @@ def run_order(costs: Sequence[float], slots: int, rounds: int = 20) -> List[int]
     return order
 
 
+def _count(value: float, noun: str) -> str:
+    return f"{value:g} {noun}" + ("" if value == 1 else "s")
+
+
 def _cause(error: Exception) -> str:
     """A failed task's error as the serial runner words a run's exception: "Type: message"."""
     cause = getattr(error, "cause", None)
@@ -330,9 +334,10 @@ def run_suite_on_ray(
     try:
         resources = task_resources(suite, ray)
         cluster = ray.cluster_resources()
-        console.print(f"Ray: {cluster.get('CPU', 0):g} CPUs, {cluster.get('GPU', 0):g} GPUs; each run asks for "
-                      f"{resources['num_cpus']:g} CPUs and {resources['num_gpus']:g} GPUs, retried up to "
-                      f"{suite.ray.max_retries} times if its worker dies")  # fmt: skip
+        console.print(f"Ray: {_count(cluster.get('CPU', 0), 'CPU')} and {_count(cluster.get('GPU', 0), 'GPU')}; "
+                      f"each run asks for {_count(resources['num_cpus'], 'CPU')} and "
+                      f"{_count(resources['num_gpus'], 'GPU')} and is started again up to "
+                      f"{_count(suite.ray.max_retries, 'time')} if its worker dies")  # fmt: skip
         cwd, root, work = os.getcwd(), Path(ledger.scene_root).resolve(), ledger.work_dir
         board = ray.remote(num_cpus=0)(RunBoard).remote()
         build = ray.remote(build_scenes).options(num_cpus=1, max_retries=suite.ray.max_retries)
@@ -342,30 +347,34 @@ def run_suite_on_ray(
             log_path = ledger.out / "runs" / f"build-scenes-{index}.log"
             built[unit] = build.remote(suite, keys, root, work, log_path, cwd)
         builds = list(built.values())
-        # Runs start once every scene is built, in the order that ends them soonest on the cluster's workers.
-        ray.wait(builds, num_returns=len(builds))
-        slots = int(cluster.get("CPU", 1) // resources["num_cpus"])
-        if resources["num_gpus"] > 0:
-            slots = min(slots, int(cluster.get("GPU", 0) // resources["num_gpus"]))
-        for index in run_order([expected_cost(suite, key) for key in todo], slots):
-            key = todo[index]
-            kill = kill_worker_at[1] if kill_worker_at is not None and kill_worker_at[0] == key.id else None
-            unit = build_unit(suite, key)
-            deps = [built[unit[0]]] if unit is not None else []
-            pending[train.remote(suite, key, root, work, ledger.log_path(key), cwd, board, kill, *deps)] = key
 
         with Progress(*progress_columns(), console=console, disable=not progress, redirect_stdout=False,
                       redirect_stderr=False) as bars:  # fmt: skip
             suite_task = bars.add_task(suite.name, total=ledger.plan.total, completed=ledger.plan.total - ledger.left,
                                        info="")  # fmt: skip
+            # Runs start once every scene is built, in the order that ends them soonest on the cluster's workers.
+            current = f"building the scenes (logs: {ledger.out / 'runs'}/build-scenes-*.log)"
+            bars.update(suite_task, info=current)
+            while ray.wait(builds, num_returns=len(builds), timeout=1.0)[1]:
+                pass  # waiting in short slices lets Ctrl-C through
+            slots = int(cluster.get("CPU", 1) // resources["num_cpus"])
+            if resources["num_gpus"] > 0:
+                slots = min(slots, int(cluster.get("GPU", 0) // resources["num_gpus"]))
+            for index in run_order([expected_cost(suite, key) for key in todo], slots):
+                key = todo[index]
+                kill = kill_worker_at[1] if kill_worker_at is not None and kill_worker_at[0] == key.id else None
+                unit = build_unit(suite, key)
+                deps = [built[unit[0]]] if unit is not None else []
+                pending[train.remote(suite, key, root, work, ledger.log_path(key), cwd, board, kill, *deps)] = key
             run_bars: Dict[str, Any] = {}
             while pending:
                 done, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
+                ids = {key.id: key for key in pending.values()}
                 running = {run_id: state for run_id, state in ray.get(board.snapshot.remote()).items()
-                           if run_id in {key.id for key in pending.values()}}  # fmt: skip
-                current = "running " + (", ".join(running) or "nothing yet (waiting for workers or scenes)")
+                           if run_id in ids}  # fmt: skip
+                current = "running " + (", ".join(running) or "nothing yet (waiting for workers)")
                 for run_id, state in running.items():
-                    key = next(k for k in pending.values() if k.id == run_id)
+                    key = ids[run_id]
                     if run_id not in run_bars:
                         run_bars[run_id] = bars.add_task(f"  {key.scene} {key.method} s{key.seed}", total=key.steps,
                                                          info="")  # fmt: skip

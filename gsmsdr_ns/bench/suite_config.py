@@ -37,6 +37,9 @@ class SceneEntry:
     """A user scene's sharp twin (for the ``sharp`` upper bound)."""
     real: Optional[RealSceneSpec] = None
     """A scene built from real photos (``gsmsdr_ns.bench.real_scenes``), or None."""
+    random_init: bool = False
+    """Start the Gaussians from random points instead of the scene's sparse points (suite key ``init: random``):
+    a capture without structure-from-motion points."""
 
     @property
     def generated(self) -> bool:
@@ -87,24 +90,36 @@ class SceneEntry:
         return path
 
     def data_key(self, method: MethodSpec) -> Dict[str, Any]:
-        """What names the folder :meth:`data` gives ``method``, without building it: two runs whose keys are
-        equal read the same images, poses and records (whatever their scene is called)."""
+        """What names the folder :meth:`data` gives ``method``, without building it, and how training starts from
+        it: two runs whose keys are equal read the same images, poses and records and start alike (whatever their
+        scene is called)."""
+        key = self.folder_key(method)
+        return {**key, "init": "random"} if self.random_init else key
+
+    def folder_key(self, method: MethodSpec) -> Dict[str, Any]:
+        """What names the folder :meth:`data` gives ``method``, without building it."""
         if self.spec is not None:
             spec = self.spec.with_variant("sharp") if method.sharp_data else self.spec
             return {"generated": dataclasses.asdict(spec)}
         if self.real is not None:
             real, records, photos = self._real_folder(method)
-            return {**self.fingerprint(), "real": dataclasses.asdict(real), "records": records, "photos": photos}
+            return {**self._fingerprint(), "real": dataclasses.asdict(real), "records": records, "photos": photos}
         path = self.sharp_path if method.sharp_data else self.path
         assert path is not None
         return {"path": str(Path(path).resolve())}
 
     def configure(self, config) -> None:
-        """Scene-specific reader settings on a method's TrainerConfig (a real scene's downscaled copies)."""
+        """Scene-specific settings on a method's TrainerConfig (a real scene's downscaled copies, random init)."""
         if self.real is not None:
             self.real.configure(config)
+        if self.random_init:
+            config.pipeline.model.random_init = True
 
     def describe(self) -> str:
+        text = self._describe()
+        return text + ", Gaussians started from random points (no sparse points)" if self.random_init else text
+
+    def _describe(self) -> str:
         if self.spec is not None:
             s = self.spec
             return (f"generated `{s.variant}`, {s.width}x{s.height}, {s.num_views} views (every {s.hold}th a sharp "
@@ -115,6 +130,12 @@ class SceneEntry:
         return f"user scene `{self.path}`{sharp}"
 
     def fingerprint(self) -> Dict[str, Any]:
+        """What the scene contributes to a record's fingerprint (``init`` only when random: older records keep
+        theirs)."""
+        key = self._fingerprint()
+        return {**key, "init": "random"} if self.random_init else key
+
+    def _fingerprint(self) -> Dict[str, Any]:
         if self.spec is not None:
             return {"generated": dataclasses.asdict(self.spec)}
         if self.real is not None:
@@ -272,10 +293,14 @@ def _parse_scene(item: Any, index: int, defaults: Dict[str, int], source: Path) 
         raise _fail(source, key, "needs exactly one of 'variant' (a generated scene), 'real' (a scene built from "
                                  "real photos) or 'path' (a scene folder)")  # fmt: skip
     name = item.get("name")
+    init = item.get("init", "points")
+    if init not in ("points", "random"):
+        raise _fail(source, f"{key}.init", f"must be 'points' (the scene's sparse points) or 'random', got {init!r}")
+    item = {k: v for k, v in item.items() if k != "init"}
     if "real" in item:
         unknown = sorted(set(item) - {"real", "name"})
         if unknown:
-            raise _fail(source, f"{key}.{unknown[0]}", "unknown key for a real-photo scene; valid: real, name")
+            raise _fail(source, f"{key}.{unknown[0]}", "unknown key for a real-photo scene; valid: real, name, init")
         real = parse_real_spec(item["real"], lambda k, message: _fail(source, f"{key}.real{k}", message))
         entry = SceneEntry(name=name or real.degraded_name, real=real)
     elif "variant" in item:
@@ -291,7 +316,8 @@ def _parse_scene(item: Any, index: int, defaults: Dict[str, int], source: Path) 
     else:
         unknown = sorted(set(item) - {"path", "name", "sharp_path"})
         if unknown:
-            raise _fail(source, f"{key}.{unknown[0]}", "unknown key for a user scene; valid: path, name, sharp_path")
+            raise _fail(source, f"{key}.{unknown[0]}", "unknown key for a user scene; valid: path, name, sharp_path, "
+                                                       "init")  # fmt: skip
         base = source.parent
 
         def resolve(k: str) -> Optional[Path]:
@@ -306,6 +332,8 @@ def _parse_scene(item: Any, index: int, defaults: Dict[str, int], source: Path) 
         path, sharp = resolve("path"), resolve("sharp_path")
         assert path is not None
         entry = SceneEntry(name=name or path.name, path=path, sharp_path=sharp)
+    if init == "random":
+        entry = dataclasses.replace(entry, random_init=True)
     if not isinstance(entry.name, str) or not _SCENE_NAME.match(entry.name) or "__" in entry.name:
         raise _fail(source, f"{key}.name", f"{entry.name!r} is not a usable scene name (letters, digits, . _ + -)")
     return entry

@@ -43,9 +43,9 @@ class SynthCLI:
     """Replace an existing non-empty output directory."""
     verbose: bool = False
     """Log every rendered view."""
-    variant: Literal["none", "sharp", "motion", "motion-strong", "defocus", "defocus-strong", "mixres", "mixed"] = (
-        "none"
-    )
+    variant: Literal[
+        "none", "sharp", "motion", "motion-strong", "defocus", "defocus-strong", "defocus-disk", "mixres", "mixed"
+    ] = "none"
     """none: the plain sharp COLMAP scene. Otherwise a Deblur-NeRF layout (images/ with sharp test views every
     --hold-th view, images_test/, degradation.json) degraded with the built-in preset of that name (sharp: no
     degradation; mixed: one of motion/defocus/mixres per training view); the degradation seed is --seed."""

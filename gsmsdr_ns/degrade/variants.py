@@ -25,6 +25,9 @@ BUILTIN_PRESETS: dict[str, DegradeConfig] = {
     "motion-strong": DegradeConfig(effects=("motion",), motion=MotionConfig(min_blur_px=16.0, max_blur_px=32.0)),
     "defocus": DegradeConfig(effects=("defocus",), defocus=DefocusConfig(min_coc_px=8.0, max_coc_px=14.0)),
     "defocus-strong": DegradeConfig(effects=("defocus",), defocus=DefocusConfig(min_coc_px=16.0, max_coc_px=32.0)),
+    "defocus-disk": DegradeConfig(
+        effects=("defocus",), defocus=DefocusConfig(model="disk", min_coc_px=13.0, max_coc_px=28.0)
+    ),
     "mixres": DegradeConfig(effects=("mixres",)),
     "mixed": DegradeConfig(effects=("motion", "defocus", "mixres"), assignment="one_per_image"),
 }
@@ -36,6 +39,7 @@ VARIANTS: dict[str, str] = {
     "motion-strong": "motion-strong",
     "defocus": "defocus",
     "defocus-strong": "defocus-strong",
+    "defocus-disk": "defocus-disk",
     "mixres": "mixres",
     "mixed": "mixed",
 }
