@@ -5,12 +5,14 @@ worker process is killed mid-run (the run is retried once and gets the same numb
 
 from __future__ import annotations
 
+import io
 import textwrap
 from pathlib import Path
 from typing import Dict
 
 import pytest
 import ray
+from rich.console import Console
 
 from gsmsdr_ns.bench.cli import entrypoint
 from gsmsdr_ns.bench.ledger import plan_runs
@@ -116,8 +118,12 @@ def test_a_killed_worker_is_retried_and_loses_nothing(serial_and_ray) -> None:
     s = serial_and_ray
     out = s["work"] / "fault"
     suite = load_suite(write_suite(s["work"], "full"))
-    outcome = run_suite_on_ray(suite, out, progress=False, plots=False, kill_worker_at=("motion__full__12__s0", 5))
+    terminal = Console(file=io.StringIO(), force_terminal=True, width=200)  # the progress display, drawn
+    outcome = run_suite_on_ray(suite, out, progress=True, plots=False, console=terminal,
+                               kill_worker_at=("motion__full__12__s0", 5))  # fmt: skip
     assert not outcome.failed and len(outcome.trained) == 2
+    shown = terminal.file.getvalue()
+    assert "motion__full__12__s0: PSNR" in shown and "(attempt 2: its worker died before)" in shown, shown[-3000:]
     got, serial = records(out), records(s["work"] / "serial")
     assert sorted(got) == sorted(key.id for key in suite.runs())
     assert got["motion__full__12__s0"]["executor"]["attempt"] == 2  # killed once, retried once

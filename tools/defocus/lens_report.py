@@ -4,11 +4,12 @@
 
 Trains one bench method (default ``full``, the default gsmsdr) on ``--data`` with the bench schedule and, every
 ``--every`` steps, prints the test PSNR and, over the defocused training views, what the lens does against what the
-photos went through (``degradation.json``'s ``radius_px`` at the image width, the disk's radius or a thin lens's
-largest circle of confusion):
+photos went through (``degradation.json``'s ``max_coc_px`` / 2 at the image width: a disk's radius, or a thin
+lens's largest circle-of-confusion radius):
 
-* ``true r``: the mean true radius; ``lens r50`` / ``lens r90``: the mean over views of the median and 90th
-  percentile of the learnt circle-of-confusion radius over the view's rendered depth (full-size pixels);
+* ``true r``: the mean over views of that largest true radius; ``lens r50`` / ``lens r90``: the mean over views of
+  the median and 90th percentile of the learnt circle-of-confusion radius over the view's rendered depth (full-size
+  pixels);
 * ``r50/true``: the mean ratio of the learnt median radius to the true one (1: right on average; a uniform disk
   wants r50 = r90 = true r);
 * ``aperture``, ``focus q``: the shared aperture (px per unit of inverse depth) and where each view's focus sits in
@@ -84,13 +85,13 @@ class LensReport:
 
 
 def true_radii(scene: Path) -> Dict[str, float]:
-    """{image name: true defocus radius in pixels at the image width} of the defocused training images."""
+    """{image name: largest true defocus radius in pixels at the image width} of the defocused training images."""
     doc = json.loads((Path(scene) / "degradation.json").read_text(encoding="utf8"))
     radii = {}
     for name, entry in doc["images"].items():
         defocus = entry.get("effects", {}).get("defocus")
-        if isinstance(defocus, dict) and "radius_px" in defocus:
-            radii[name] = float(defocus["radius_px"])
+        if isinstance(defocus, dict) and "max_coc_px" in defocus:
+            radii[name] = float(defocus["max_coc_px"]) / 2
     return radii
 
 
