@@ -6,6 +6,7 @@ worker process is killed mid-run (the run is retried once and gets the same numb
 from __future__ import annotations
 
 import io
+import re
 import textwrap
 from pathlib import Path
 from typing import Dict
@@ -122,7 +123,7 @@ def test_a_killed_worker_is_retried_and_loses_nothing(serial_and_ray) -> None:
     outcome = run_suite_on_ray(suite, out, progress=True, plots=False, console=terminal,
                                kill_worker_at=("motion__full__12__s0", 5))  # fmt: skip
     assert not outcome.failed and len(outcome.trained) == 2
-    shown = terminal.file.getvalue()
+    shown = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", terminal.file.getvalue())  # the text, without colours
     assert "motion__full__12__s0: PSNR" in shown and "(attempt 2: its worker died before)" in shown, shown[-3000:]
     got, serial = records(out), records(s["work"] / "serial")
     assert sorted(got) == sorted(key.id for key in suite.runs())
