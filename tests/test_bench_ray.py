@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import re
+import signal
 import textwrap
 from pathlib import Path
 from typing import Dict
@@ -78,8 +79,13 @@ def serial_and_ray(tmp_path_factory: pytest.TempPathFactory, local_ray):
     work = tmp_path_factory.mktemp("ray")
     suite = load_suite(write_suite(work))
     serial = run_suite(suite, work / "serial", progress=False, plots=False)
-    with pytest.raises(KeyboardInterrupt):
-        run_suite_on_ray(suite, work / "ray", progress=False, plots=False, interrupt_after=1)
+    # SIGINT as a terminal's Ctrl-C meets it: a shell that starts jobs in the background makes them ignore it
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run_suite_on_ray(suite, work / "ray", progress=False, plots=False, interrupt_after=1)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     kept, left_after_interrupt = records(work / "ray"), leftovers(work / "ray")
     resumed = run_suite_on_ray(suite, work / "ray", progress=False, plots=False)
     return dict(work=work, suite=suite, serial=serial, kept=kept, left_after_interrupt=left_after_interrupt,
