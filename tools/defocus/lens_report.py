@@ -114,15 +114,15 @@ def lens_rows(run, truth: Dict[str, float]) -> str:
                 continue
             camera = dataset.cameras[index : index + 1].to(model.device)
             camera.metadata = {"cam_idx": index}
-            depth = model.get_outputs(camera)["depth"]  # [H, W, 1]
-            depth = depth.permute(2, 0, 1)[None].float()
+            outputs = model.get_outputs(camera)
+            depth = outputs["depth"].permute(2, 0, 1)[None].float()  # [1, 1, H, W]
             ids = torch.tensor([index], device=depth.device)
             radius = lens.radius(depth, ids).flatten()
             inverse = 1.0 / depth.flatten().clamp_min(1e-6)
             focus = float(lens.inverse_focus[index])
             quantile = float((inverse < focus).float().mean())
             r50, r90 = float(radius.median()), float(torch.quantile(radius, 0.9))
-            rgb = model.get_outputs(camera)["rgb"].permute(2, 0, 1)[None].float()
+            rgb = outputs["rgb"].permute(2, 0, 1)[None].float()
             photo = dataset[index]["image"][..., :3].to(rgb.device).float().permute(2, 0, 1)[None]
             photo = photo / 255.0 if photo.max() > 1.5 else photo
             window = model.degradation.plan(index, 1, run.step).blur_scale
