@@ -74,12 +74,12 @@ def built(photo_set, tmp_path_factory) -> dict:
 
 def test_shipped_real_suite_parses() -> None:
     suite = load_suite(find_suite_file("real"))
-    assert [s.name for s in suite.scenes] == ["fern-motion", "fern-defocus", "fern-sharp"]
-    motion, defocus, sharp = (s.real for s in suite.scenes)
+    assert [s.name for s in suite.scenes] == ["fern-motion", "fern-defocus", "fern-defocus-disk", "fern-sharp"]
+    motion, defocus, disk, sharp = (s.real for s in suite.scenes)
     assert motion.dataset == "llff-fern" and motion.preset == "motion-strong" and sharp.preset == "sharp"
-    assert defocus.preset == "defocus-strong"
-    assert motion.images == defocus.images == sharp.images  # the YAML merge key
-    assert motion.train_downscale == defocus.train_downscale == sharp.train_downscale
+    assert defocus.preset == "defocus-strong" and disk.preset == "defocus-disk"
+    assert motion.images == defocus.images == disk.images == sharp.images  # the YAML merge key
+    assert motion.train_downscale == defocus.train_downscale == disk.train_downscale == sharp.train_downscale
     assert suite.methods == ["plain", "full", "sharp-degraded-poses", "sharp"]
     assert suite.steps == [3000] and len(suite.seeds) >= 3
     # the two bounds train on different photos: their records must not be taken for each other's

@@ -167,13 +167,14 @@ def test_user_scene_without_sharp_twin_skips_the_upper_bound(tmp_path: Path) -> 
 def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert set(METHODS) == {"plain", "plain-poses", "msd-only", "re-only", "full", "full-poses", "full-uncentred",
                             "full-lens-unknown", "full-paper-loss", "full-margin", "full-shake", "full-true",
-                            "full-per-pixel", "-view", "view", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite",
-                            "sharp-degraded-poses", "sharp"}  # fmt: skip
+                            "full-per-pixel", "full-fallback", "-view", "view", "-gaka", "-safm", "-mca", "-rgbd",
+                            "gsmsdr-lite", "sharp-degraded-poses", "sharp"}  # fmt: skip
 
     def model(name: str):
         return METHODS[name].make_config(tmp_path, tmp_path / "out").pipeline.model
 
     assert model("plain").degradation == "sharp" and model("sharp").degradation == "sharp"
+    assert model("full-fallback").degradation_model.fallback and not model("full").degradation_model.fallback
     assert METHODS["sharp"].sharp_data and not METHODS["plain"].sharp_data
     bound = METHODS["sharp-degraded-poses"]
     assert bound.sharp_data and bound.degraded_poses and not METHODS["sharp"].degraded_poses
@@ -301,9 +302,10 @@ def test_a_preset_that_degrades_nothing_shares_its_sharp_photos_scene() -> None:
     identities = {run.id: training_identity(suite, run) for run in suite.runs() if run.seed == 0}
     same = identities["fern-motion__sharp__3000__s0"]
     assert sorted(k for k, v in identities.items() if v == same) == [
-        "fern-defocus__sharp__3000__s0", "fern-motion__sharp__3000__s0", "fern-sharp__plain__3000__s0",
-        "fern-sharp__sharp-degraded-poses__3000__s0", "fern-sharp__sharp__3000__s0"]  # fmt: skip
-    assert len(set(identities.values())) == len(identities) - 4
+        "fern-defocus-disk__sharp__3000__s0", "fern-defocus__sharp__3000__s0", "fern-motion__sharp__3000__s0",
+        "fern-sharp__plain__3000__s0", "fern-sharp__sharp-degraded-poses__3000__s0", "fern-sharp__sharp__3000__s0",
+    ]  # fmt: skip
+    assert len(set(identities.values())) == len(identities) - 5
 
 
 def test_quick_flag_maps_to_the_quick_suite() -> None:

@@ -287,7 +287,7 @@ def test_thin_lens_blurs_defocused_images_only_and_learns(mode):
         outputs = model.get_outputs(camera)
         assert outputs["depth"] is not None or (mode == "view" and view == 2)  # the lens needs depth, view mode not
         lens.zero_grad()
-        (outputs["rgb"] - 0.5).abs().mean().backward()
+        (outputs["rgb_degraded"] - 0.5).abs().mean().backward()  # the lens learns on fallback steps too
         if view == 0:
             assert lens.log_aperture.grad is not None and float(lens.log_aperture.grad.abs()) > 0
             assert float(lens.inverse_focus.grad[0].abs()) > 0 and float(lens.inverse_focus.grad[1]) == 0
@@ -323,7 +323,7 @@ def test_defocus_only_images_skip_the_field_unless_asked(defocus_field):
         outputs = model.get_outputs(camera)
         assert ("blur_mask" in outputs) == (view in (1, 2) or (view == 0 and defocus_field))
         if view == 0:  # the lens's blur is the simulated image
-            assert float((outputs["rgb"] - outputs["rgb_sharp"]).abs().max()) > 1e-3
+            assert float((outputs["rgb_degraded"] - outputs["rgb_sharp"]).abs().max()) > 1e-3
     for handle in handles:
         handle.remove()
     assert [views for views, _, _ in field_calls] == ([(0,)] if defocus_field else []) + [(1,), (2,)]
@@ -374,7 +374,7 @@ def test_blurred_views_render_a_margin_the_blur_reads_then_crop_it(margin):
     blurring: a kernel that shifts the image fills the last columns with what lies just outside the frame (the
     render of a camera 2 * 2 pixels wider and taller), not with the replicated border."""
     field = BlurFieldConfig(mode="view", kernel_sizes=(5,), progressive=False)
-    options = DegradationConfig(warmup=0, linear_light=False, render_margin=margin)
+    options = DegradationConfig(warmup=0, linear_light=False, render_margin=margin, fallback=False)
     model = build({"degradations": records("motion")}, num_downscales=0, background_color="white", blur_field=field,
                   degradation_model=options)  # fmt: skip
     _shift_left_two_pixels(model)
@@ -420,7 +420,7 @@ def test_camera_shake_runs_on_views_that_may_be_shaken_and_learns():
     camera.metadata = {"cam_idx": 3}
     outputs = model.get_outputs(camera)
     assert outputs["rgb"].shape == (24, 32, 3)
-    outputs["rgb"].sum().backward()
+    outputs["rgb_degraded"].sum().backward()
     grad = shake.coefficients.grad
     assert grad is not None and float(grad[3].abs().sum()) > 0 and torch.equal(grad[:3], torch.zeros_like(grad[:3]))
     assert build({"degradations": recs}).degradation.camera_shake is None  # off unless asked
@@ -619,7 +619,8 @@ def test_densification_gradient_of_blurred_views_is_scaled_when_asked():
 
     def grad2d(scale: float, view: int) -> torch.Tensor:
         torch.manual_seed(0)
-        model = build(metadata, n=2, degradation_model=DegradationConfig(warmup=0), degraded_densify_grad_scale=scale)
+        options = DegradationConfig(warmup=0, fallback=False)  # the Gaussians train through the blur
+        model = build(metadata, n=2, degradation_model=options, degraded_densify_grad_scale=scale)
         model.train()
         model.optimizers = None  # no refinement at step 1: the statistics are only accumulated
         camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)
@@ -650,7 +651,7 @@ def test_the_deconvolved_loss_weighs_a_blurred_views_residual_by_its_mean_kernel
     def loss_terms(view: int, weight: float):
         torch.manual_seed(0)
         field = BlurFieldConfig(mode=mode)
-        options = DegradationConfig(warmup=0, deconvolved_loss_weight=weight)
+        options = DegradationConfig(warmup=0, deconvolved_loss_weight=weight, fallback=False)
         model = build(metadata, n=2, blur_field=field, degradation_model=options, background_color="black",
                       num_downscales=0)  # fmt: skip
         model.train()

@@ -147,6 +147,13 @@ METHODS: Dict[str, MethodSpec] = {
             "re-only", "RE-only", "gsmsdr", "MAAN features, one full-resolution kernel scale (no HPKO)", mode="re_only"
         ),  # fmt: skip
         _method("full", "GS-MSDR (full)", "gsmsdr", "the gsmsdr preset: MAAN + HPKO, with per-view kernels"),
+        _method(
+            "full-fallback",
+            "GS-MSDR (full) + per-image fallback",
+            "gsmsdr",
+            "full; a view trains plain steps until its blur model explains its photo better than the sharp render",
+            fallback=True,
+        ),  # fmt: skip
         MethodSpec(
             "full-poses",
             "GS-MSDR (full) + pose refinement",

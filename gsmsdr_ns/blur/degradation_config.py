@@ -23,6 +23,16 @@ class DegradationConfig:
 
     warmup: int = 250
     """The blur field (and the lens and shake before it) are skipped for the first ``warmup`` steps (BAGS: 250)."""
+    fallback: bool = False
+    """Per image, train a plain step (the Gaussians on the sharp render) until its degradation model explains the
+    photo better than the sharp render does (running means of both errors, :class:`~gsmsdr_ns.blur.fallback.
+    ExplanationGate`); meanwhile the model keeps learning on the detached render. Off by default: from random
+    points it let the lens over-blur (docs/design.md). False: every blurred image trains through its model from the
+    end of the warm-up."""
+    fallback_decay: float = 0.5
+    """Weight of an image's previous running errors at each of its steps (0: its last step alone decides)."""
+    fallback_margin: float = 0.0
+    """The model is used once its error is below (1 - margin) times the sharp render's."""
     switch_steps: Optional[Tuple[int, ...]] = None
     """Steps where HPKO goes one scale finer; None: follow the model's resolution schedule (recommended)."""
     linear_light: bool = True
@@ -82,6 +92,10 @@ class DegradationConfig:
     def __post_init__(self) -> None:
         if self.warmup < 0:
             raise ValueError(f"warmup must be >= 0, got {self.warmup}")
+        if not 0.0 <= self.fallback_decay < 1.0:
+            raise ValueError(f"fallback_decay must be in [0, 1), got {self.fallback_decay}")
+        if not 0.0 <= self.fallback_margin < 1.0:
+            raise ValueError(f"fallback_margin must be in [0, 1), got {self.fallback_margin}")
         if not self.thin_lens_initial_aperture > 0:
             raise ValueError(f"thin_lens_initial_aperture must be > 0, got {self.thin_lens_initial_aperture}")
         if not self.deconvolved_loss_weight >= 0:

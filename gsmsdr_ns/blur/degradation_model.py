@@ -28,6 +28,7 @@ from torch import Tensor, nn
 
 from gsmsdr_ns.blur.defocus import ThinLensDefocus
 from gsmsdr_ns.blur.degradation_config import DegradationConfig
+from gsmsdr_ns.blur.fallback import ExplanationGate, photo_errors
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig, blend
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo
 from gsmsdr_ns.blur.losses import DegradationAux, degradation_losses, kernel_centres, mean_blend_kernel
@@ -38,7 +39,14 @@ from gsmsdr_ns.blur.shake import CameraShake
 from gsmsdr_ns.ops.grid_kernels import GridKernels, as_dense
 from gsmsdr_ns.timing_hooks import timed
 
-__all__ = ["DegradationModel", "DegradationPlan", "crop_margin", "LEGACY_KEY_PREFIXES", "remap_legacy_keys"]
+__all__ = [
+    "DegradationModel",
+    "DegradationPlan",
+    "crop_margin",
+    "LEGACY_KEY_PREFIXES",
+    "remap_legacy_keys",
+    "with_fallback_state",
+]
 
 LEGACY_KEY_PREFIXES = ("blur_field.", "resolution_model.", "train_camera_centres")
 """State-dict keys the degradation modules had when they were attributes of the nerfstudio model itself."""
@@ -76,6 +84,9 @@ class DegradationPlan(NamedTuple):
     pose was estimated from the photo)."""
     has_model: bool = False
     """The training image has a degradation model (its profile is not sharp), whether or not it runs at this step."""
+    fallback: bool = False
+    """The image trains as a plain step (its model does not yet explain the photo better than the sharp render):
+    the degradation models run on the detached render and learn alone (:meth:`DegradationModel.with_fallback`)."""
 
     @property
     def needs_depth(self) -> bool:
@@ -133,6 +144,23 @@ def remap_legacy_keys(state_dict: Mapping[str, Any], prefix: str) -> Mapping[str
     return out
 
 
+def with_fallback_state(state_dict: Mapping[str, Any], own: Mapping[str, Any], prefix: str) -> Mapping[str, Any]:
+    """A checkpoint's ``state_dict`` with the fallback gate's running errors (keys under ``prefix``) as this model
+    has them: the model's own (unmeasured) values where the checkpoint has none, none where the model has no
+    gate. ``state_dict`` itself when both agree; torch's ``_metadata`` is kept."""
+    theirs = {key for key in state_dict if key.startswith(prefix)}
+    ours = {key for key in own if key.startswith(prefix)}
+    if theirs == ours:
+        return state_dict
+    out: Any = OrderedDict((key, value) for key, value in state_dict.items() if key in ours or key not in theirs)
+    for key in ours - theirs:
+        out[key] = own[key]
+    metadata = getattr(state_dict, "_metadata", None)
+    if metadata is not None:
+        out._metadata = metadata
+    return out
+
+
 def _bchw(x: Tensor) -> Tensor:
     """[H, W, C] -> [1, C, H, W]"""
     return x.permute(2, 0, 1)[None]
@@ -157,9 +185,10 @@ class DegradationModel(nn.Module):
     Attributes (None when no image needs them): ``camera_shake`` (:class:`CameraShake`), ``thin_lens``
     (:class:`ThinLensDefocus`), ``blur_field`` (:class:`BlurField`), ``hpko`` (:class:`HPKOScheduler`),
     ``train_camera_centres`` (persistent [N, 3] buffer, NaN until :meth:`set_train_camera_centres`: the viewer
-    outputs use the nearest training view), ``resolution_model`` (:class:`ResolutionLossModel`). The blur field is
-    initialised under ``torch.random.fork_rng``: building it leaves the random stream training draws from as it
-    would be without it.
+    outputs use the nearest training view), ``resolution_model`` (:class:`ResolutionLossModel`), ``fallback``
+    (:class:`~gsmsdr_ns.blur.fallback.ExplanationGate`, with the blur field when the config's ``fallback`` is on).
+    The blur field is initialised under ``torch.random.fork_rng``: building it leaves the random stream training
+    draws from as it would be without it.
     """
 
     train_camera_centres: Tensor  # buffer, registered in __init__ when there is a blur field
@@ -181,6 +210,7 @@ class DegradationModel(nn.Module):
         self.thin_lens: Optional[ThinLensDefocus] = None
         self.hpko: Optional[HPKOScheduler] = None
         self.resolution_model: Optional[ResolutionLossModel] = None
+        self.fallback: Optional[ExplanationGate] = None
         self._view_id_tensors: Dict[Tuple[int, torch.device], Tensor] = {}
         num_views = len(self.profiles)
         if any(p.needs_blur_field for p in self.profiles):
@@ -202,6 +232,8 @@ class DegradationModel(nn.Module):
                 enabled=field_config.modules.hpko,
             )
             self.register_buffer("train_camera_centres", torch.full((num_views, 3), float("nan")))
+            if config.fallback:
+                self.fallback = ExplanationGate(num_views, config.fallback_decay, config.fallback_margin)
         self.camera_shake: Optional[CameraShake] = None
         if self.blur_field is not None and config.camera_shake and any(p.motion for p in self.profiles):
             self.camera_shake = CameraShake(num_views, config.shake_samples)
@@ -327,6 +359,20 @@ class DegradationModel(nn.Module):
             has_model=True,
         )
 
+    def with_fallback(self, plan: DegradationPlan) -> DegradationPlan:
+        """``plan`` with ``fallback`` set when its image's blur model runs but does not yet explain the photo better
+        than the sharp render (:class:`~gsmsdr_ns.blur.fallback.ExplanationGate`); reads the gate's state."""
+        if self.fallback is None or plan.blur_scale is None or plan.view_id is None:
+            return plan
+        return plan if self.fallback.uses_model(plan.view_id) else plan._replace(fallback=True)
+
+    @torch.no_grad()
+    def record_errors(self, plan: DegradationPlan, degraded: Tensor, sharp: Tensor, target: Tensor) -> None:
+        """After a step that ran ``plan``'s blur model: fold how well ``degraded`` and ``sharp`` (the render) explain
+        ``target`` (all [H, W, 3]) into the gate."""
+        if self.fallback is not None and plan.blur_scale is not None and plan.view_id is not None:
+            self.fallback.update(plan.view_id, photo_errors(degraded, sharp, target))
+
     def forward(
         self, rgb: Tensor, depth: Optional[Tensor], plan: DegradationPlan, K: Optional[Tensor] = None
     ) -> Tuple[Tensor, DegradationAux]:
@@ -340,12 +386,16 @@ class DegradationModel(nn.Module):
             K: [3, 3] intrinsics of the render (margin included); needed when ``plan.shake``.
         Returns:
             The simulated degraded image [H, W, 3], and what the losses, metrics and viewer read of the step
-            (:class:`~gsmsdr_ns.blur.losses.DegradationAux`).
+            (:class:`~gsmsdr_ns.blur.losses.DegradationAux`). With ``plan.fallback`` the models run on the detached
+            render: the degraded image's gradient reaches them alone (``aux.sharp`` keeps the render's).
         """
+        sharp = crop_margin(rgb, plan.margin, dims=(0, 1))
+        if plan.fallback:
+            rgb = rgb.detach()
+            depth = None if depth is None else depth.detach()
         image = _bchw(rgb)
         assert plan.view_id is not None
         view_ids = self.view_ids(plan.view_id, image.device)
-        sharp = crop_margin(rgb, plan.margin, dims=(0, 1))
         aux = DegradationAux(sharp)
         if plan.shake:
             assert self.camera_shake is not None and self.blur_field is not None and K is not None

@@ -40,6 +40,7 @@ from gsmsdr_ns.blur.degradation_model import (
     DegradationPlan,
     crop_margin,
     remap_legacy_keys,
+    with_fallback_state,
 )
 from gsmsdr_ns.blur.field import BlurFieldConfig
 from gsmsdr_ns.blur.profile import training_profiles
@@ -170,10 +171,12 @@ class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):
 
         splatfacto replaces the parameter objects here, which detaches them from optimizers created before loading
         (trainer resume): those would keep stepping the stale tensors. Keeping the objects avoids that. Checkpoints
-        written before the degradation models moved into ``degradation`` load too (:func:`remap_legacy_keys`).
+        written before the degradation models moved into ``degradation`` load too (:func:`remap_legacy_keys`), and
+        so do checkpoints written before the per-image fallback or with it switched off (:func:`with_fallback_state`).
         A checkpoint of another preset (other widths) raises ``CheckpointMismatchError`` naming both.
         """
         state_dict = remap_legacy_keys(state_dict, "degradation.")
+        state_dict = with_fallback_state(state_dict, self.state_dict(), "degradation.fallback.")
         layout = checkpoint_layout(self, self.config.blur_field)
         check_thin_lens(layout, self.state_dict(), state_dict)
         check_camera_shake(layout, self.state_dict(), state_dict)
@@ -205,7 +208,7 @@ class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):
             full_width, full_height = int(camera.width.item()), int(camera.height.item())
             return self.get_empty_outputs(full_width, full_height, self.background_color.to(self.device))
 
-        plan = self._degradation_plan(camera, downscale)
+        plan = self.degradation.with_fallback(self._degradation_plan(camera, downscale))
         if plan.margin:  # the blur reads what lies just outside the frame: render it, crop after blurring
             K = K.clone()
             K[:, :2, 2] += plan.margin
@@ -215,7 +218,7 @@ class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):
         render, alpha, self.info = timed(
             "rasterization", self._rasterize, gaussians, viewmats, K, width, height, with_depth
         )
-        self.info["degraded"] = not plan.is_plain  # read by step_post_backward, as splatfacto reads its info
+        self.info["degraded"] = not (plan.is_plain or plan.fallback)  # read by step_post_backward
         if self.training:
             with stage("densification"):
                 self.strategy.step_pre_backward(
@@ -231,8 +234,10 @@ class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):
         depth = expected_depth(render, alpha) if with_depth else None
         outputs = {"rgb": rgb.squeeze(0), "depth": depth, "accumulation": alpha.squeeze(0), "background": background}
         if not plan.is_plain:
-            outputs["rgb"], aux = self.degradation(outputs["rgb"], depth, plan, K[0])
-            outputs["rgb_sharp"], outputs["degradation"] = aux.sharp, aux
+            degraded, aux = self.degradation(outputs["rgb"], depth, plan, K[0])
+            outputs["rgb"] = aux.sharp if plan.fallback else degraded  # what the Gaussians' loss compares
+            outputs["rgb_sharp"], outputs["rgb_degraded"], outputs["degradation"] = aux.sharp, degraded, aux
+            outputs["degradation_plan"] = plan
             if aux.mask is not None:
                 outputs["blur_mask"] = aux.mask
             if plan.margin:
@@ -310,10 +315,26 @@ class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):
         if self.training:
             aux = outputs.get("degradation")
             if aux is not None:
-                target = self._training_target(outputs, batch) if aux.kernel_mean is not None else None
-                loss_dict.update(self.degradation.losses(aux, outputs["rgb"], target))
+                plan, degraded = outputs["degradation_plan"], outputs["rgb_degraded"]
+                target = self._training_target(outputs, batch)
+                self.degradation.record_errors(plan, degraded, aux.sharp, target)
+                if plan.fallback:  # a plain step for the Gaussians; the degradation models fit the photo alone
+                    loss_dict["degradation_fit"] = self._photometric_loss(degraded, batch, outputs["background"])
+                deconvolved_target = target if aux.kernel_mean is not None else None
+                loss_dict.update(self.degradation.losses(aux, degraded, deconvolved_target))
             self._check_finite(loss_dict)
         return loss_dict
+
+    def _photometric_loss(self, pred: Tensor, batch, background: Tensor) -> Tensor:
+        """splatfacto's main loss, (1 - ssim_lambda) * L1 + ssim_lambda * (1 - SSIM), of ``pred`` [H, W, 3]
+        against the training image (masked pixels black in both, as splatfacto does)."""
+        gt = self.composite_with_background(self.get_gt_img(batch["image"]), background)[..., :3]
+        if "mask" in batch:
+            mask = self._downscale_if_required(batch["mask"]).to(self.device)
+            gt, pred = gt * mask, pred * mask
+        l1 = torch.abs(gt - pred).mean()
+        ssim = self.ssim(gt.permute(2, 0, 1)[None], pred.permute(2, 0, 1)[None])
+        return (1 - self.config.ssim_lambda) * l1 + self.config.ssim_lambda * (1 - ssim)
 
     def _training_target(self, outputs, batch) -> Tensor:
         """[H, W, 3] the training image composited on the render's background, its masked pixels replaced by the
@@ -330,6 +351,8 @@ class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):
         aux = outputs.get("degradation") if self.training else None
         if aux is not None and aux.kernel_size is not None:
             metrics_dict["blur_kernel_size"] = aux.kernel_size
+        if self.training and self.degradation.fallback is not None:
+            metrics_dict["blur_model_in_use"] = self.degradation.fallback.fraction_using_model()
         return metrics_dict
 
     def get_image_metrics_and_images(

@@ -16,7 +16,9 @@ lens's largest circle-of-confusion radius):
   its depth (the quantile of its rendered inverse depth; a disk has no focus);
 * ``gain %``: how much better the lens explains the photos than the sharp render, ``1 - L1(lens(render), photo) /
   L1(render, photo)`` averaged over the views (full resolution, the window the schedule gives at this step);
-  ``gain < 0`` views: how many photos the lens explains worse than no lens at all.
+  ``gain < 0`` views: how many photos the lens explains worse than no lens at all;
+* ``in use``: how many of the measured training views train through their degradation model (the rest fall back to
+  plain steps, :class:`~gsmsdr_ns.blur.fallback.ExplanationGate`; ``-`` without the fallback).
 """
 
 from __future__ import annotations
@@ -70,16 +72,17 @@ class LensReport:
               f"{int(self.blur_warmup * self.steps)}")  # fmt: skip
         print(
             "| step | test PSNR | Gaussians | views | true r | lens r50 | lens r90 | r50/true | aperture | focus q | "
-            "gain % | gain < 0 views |"
+            "gain % | gain < 0 views | in use |"
         )
-        print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+        print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
         try:
             targets = sorted({*range(self.every, self.steps, self.every), self.steps})
             for target in targets:
                 run.train(target - run.step)
                 psnr = evaluate_test_views(run)["psnr"]
                 row = lens_rows(run, truth)
-                print(f"| {run.step} | {psnr:.2f} | {int(run.model.num_points)} | {row}", flush=True)
+                cells = f"{run.step} | {psnr:.2f} | {int(run.model.num_points)} | {row} {models_in_use(run)}"
+                print(f"| {cells} |", flush=True)
         finally:
             run.close()
 
@@ -93,6 +96,16 @@ def true_radii(scene: Path) -> Dict[str, float]:
         if isinstance(defocus, dict) and "max_coc_px" in defocus:
             radii[name] = float(defocus["max_coc_px"]) / 2
     return radii
+
+
+def models_in_use(run) -> str:
+    """``"<views training through their model> / <views measured>"`` of the fallback gate; ``-`` without one."""
+    gate = getattr(getattr(run.model, "degradation", None), "fallback", None)
+    if gate is None:
+        return "-"
+    measured = ~torch.isnan(gate.errors[:, 0])
+    using = gate.errors[:, 0] < (1.0 - gate.margin) * gate.errors[:, 1]
+    return f"{int(using.sum())} / {int(measured.sum())}"
 
 
 @torch.no_grad()
