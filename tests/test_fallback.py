@@ -11,8 +11,8 @@ from test_plugin_blur import build, records
 from test_plugin_model import look_from, make_camera
 
 from gsmsdr_ns.blur import BlurFieldConfig, DegradationConfig
-from gsmsdr_ns.blur.degradation_model import with_fallback_state
 from gsmsdr_ns.blur.fallback import ExplanationGate, photo_errors
+from gsmsdr_ns.blur.state_keys import with_fallback_state
 
 
 def test_gate_uses_the_model_only_once_measured_better_than_the_sharp_render():

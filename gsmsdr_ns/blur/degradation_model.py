@@ -12,15 +12,15 @@ every degradation loss term. The viewer's blur outputs come from
 :meth:`DegradationModel.preview`; it and ``forward`` run "the thin lens, then the field" through one method,
 :meth:`DegradationModel._lens_then_field`.
 
-Checkpoint keys: ``blur_field.*``, ``thin_lens.*``, ``camera_shake.*``, ``resolution_model.*`` and
-``train_camera_centres`` under this module's prefix; :func:`remap_legacy_keys` moves the keys of older checkpoints
-(the same names one level up, or the lens under the field) to them.
+Checkpoint keys: ``blur_field.*``, ``thin_lens.*``, ``camera_shake.*``, ``resolution_model.*``, ``fallback.*`` and
+``train_camera_centres`` under this module's prefix; :mod:`gsmsdr_ns.blur.state_keys` moves the keys of older
+checkpoints to them.
 """
 
 from __future__ import annotations
 
-from collections import Counter, OrderedDict
-from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
+from collections import Counter
+from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -36,6 +36,7 @@ from gsmsdr_ns.blur.maan import host_checked_view_ids
 from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, describe_profiles, effective_factor
 from gsmsdr_ns.blur.shake import CameraShake
+from gsmsdr_ns.blur.state_keys import LEGACY_KEY_PREFIXES, remap_legacy_keys, with_fallback_state
 from gsmsdr_ns.ops.grid_kernels import GridKernels, as_dense
 from gsmsdr_ns.timing_hooks import timed
 
@@ -47,11 +48,6 @@ __all__ = [
     "remap_legacy_keys",
     "with_fallback_state",
 ]
-
-LEGACY_KEY_PREFIXES = ("blur_field.", "resolution_model.", "train_camera_centres")
-"""State-dict keys the degradation modules had when they were attributes of the nerfstudio model itself."""
-LEGACY_LENS_PREFIX = "blur_field.thin_lens."
-"""Where the thin lens's keys were while it was a child of the blur field (now ``thin_lens.``)."""
 
 
 class DegradationPlan(NamedTuple):
@@ -120,45 +116,6 @@ class LensThenField(NamedTuple):
     image: Tensor
     kernels: Optional[Union[Tensor, GridKernels]]
     mask: Optional[Tensor]
-
-
-def remap_legacy_keys(state_dict: Mapping[str, Any], prefix: str) -> Mapping[str, Any]:
-    """An older checkpoint with its degradation keys where this module keeps them (``prefix``, e.g.
-    ``"degradation."``): keys written before :class:`DegradationModel` existed (``blur_field.*``,
-    ``resolution_model.*``, ``train_camera_centres`` one level up) move under ``prefix``, and the thin lens's keys
-    under the field (``<prefix>blur_field.thin_lens.*``) become ``<prefix>thin_lens.*``. ``state_dict`` itself when
-    it has neither. The new dict keeps torch's ``_metadata`` (module versions), remapped."""
-    legacy = tuple(p.rstrip(".") for p in LEGACY_KEY_PREFIXES)
-    old_lens = prefix + LEGACY_LENS_PREFIX.rstrip(".")
-    if not any(key.startswith(legacy) or key.startswith(old_lens) for key in state_dict):
-        return state_dict
-
-    def moved(key: str) -> str:
-        key = prefix + key if key.startswith(legacy) else key
-        return prefix + "thin_lens" + key[len(old_lens) :] if key.startswith(old_lens) else key
-
-    out: Any = OrderedDict((moved(key), value) for key, value in state_dict.items())
-    metadata = getattr(state_dict, "_metadata", None)
-    if metadata is not None:
-        out._metadata = OrderedDict((moved(key), value) for key, value in metadata.items())
-    return out
-
-
-def with_fallback_state(state_dict: Mapping[str, Any], own: Mapping[str, Any], prefix: str) -> Mapping[str, Any]:
-    """A checkpoint's ``state_dict`` with the fallback gate's running errors (keys under ``prefix``) as this model
-    has them: the model's own (unmeasured) values where the checkpoint has none, none where the model has no
-    gate. ``state_dict`` itself when both agree; torch's ``_metadata`` is kept."""
-    theirs = {key for key in state_dict if key.startswith(prefix)}
-    ours = {key for key in own if key.startswith(prefix)}
-    if theirs == ours:
-        return state_dict
-    out: Any = OrderedDict((key, value) for key, value in state_dict.items() if key in ours or key not in theirs)
-    for key in ours - theirs:
-        out[key] = own[key]
-    metadata = getattr(state_dict, "_metadata", None)
-    if metadata is not None:
-        out._metadata = metadata
-    return out
 
 
 def _bchw(x: Tensor) -> Tensor:
