@@ -167,8 +167,9 @@ def test_user_scene_without_sharp_twin_skips_the_upper_bound(tmp_path: Path) -> 
 def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert set(METHODS) == {"plain", "plain-poses", "msd-only", "re-only", "full", "full-poses", "full-uncentred",
                             "full-lens-unknown", "full-paper-loss", "full-margin", "full-shake", "full-true",
-                            "full-per-pixel", "full-fallback", "-view", "view", "-gaka", "-safm", "-mca", "-rgbd",
-                            "gsmsdr-lite", "sharp-degraded-poses", "sharp"}  # fmt: skip
+                            "full-per-pixel", "full-fallback", "full-fallback-coarse", "full-anchor", "-view", "view",
+                            "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite", "sharp-degraded-poses",
+                            "sharp"}  # fmt: skip
 
     def model(name: str):
         return METHODS[name].make_config(tmp_path, tmp_path / "out").pipeline.model

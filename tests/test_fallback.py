@@ -39,6 +39,8 @@ def test_gate_rejects_settings_outside_their_range(decay, margin):
         ExplanationGate(2, decay=decay, margin=margin)
     with pytest.raises(ValueError, match="fallback"):
         DegradationConfig(fallback_decay=decay, fallback_margin=margin)
+    with pytest.raises(ValueError, match="fallback_sigma"):
+        DegradationConfig(fallback_sigma=-1.0)
 
 
 def test_photo_errors_are_the_mean_absolute_errors_detached():
@@ -46,6 +48,31 @@ def test_photo_errors_are_the_mean_absolute_errors_detached():
     degraded = torch.full((4, 5, 3), 0.25, requires_grad=True)
     errors = photo_errors(degraded, torch.full((4, 5, 3), -0.5), target)
     assert errors.tolist() == pytest.approx([0.25, 0.5]) and not errors.requires_grad
+
+
+def test_errors_after_a_small_blur_tell_render_noise_from_photo_blur():
+    """A sharp photo with an edge, a render that is the photo plus pixel-scale noise, and that render blurred: as
+    they are, the blur seems to explain the photo better (it removes the noise); after a 1-pixel Gaussian blur of all
+    three the noise is gone and the render explains the photo better, as it should. A blurred photo stays better
+    explained by the blurred render at both scales."""
+    from kornia.filters import box_blur
+
+    photo = torch.zeros(32, 32, 3)
+    photo[:, 16:] = 0.8
+    checker = (torch.arange(32)[:, None] + torch.arange(32)[None, :]) % 2
+    render = photo + 0.1 * (2 * checker[..., None].float() - 1)
+
+    def blur(image):
+        return box_blur(image.permute(2, 0, 1)[None], (5, 5), border_type="replicate")[0].permute(1, 2, 0)
+
+    degraded, sharp = photo_errors(blur(render), render, photo).tolist()
+    assert degraded < sharp  # the noise fools the comparison
+    degraded, sharp = photo_errors(blur(render), render, photo, sigma=1.0).tolist()
+    assert sharp < 0.1 * degraded  # not after the small blur
+    blurred_photo = blur(photo)
+    for sigma in (0.0, 1.0):
+        degraded, sharp = photo_errors(blur(photo), photo, blurred_photo, sigma=sigma).tolist()
+        assert degraded < 0.1 * sharp
 
 
 def _train_camera(view: int):

@@ -154,6 +154,21 @@ METHODS: Dict[str, MethodSpec] = {
             "full; a view trains plain steps until its blur model explains its photo better than the sharp render",
             fallback=True,
         ),  # fmt: skip
+        _method(
+            "full-fallback-coarse",
+            "GS-MSDR (full) + per-image fallback, errors at sigma 1",
+            "gsmsdr",
+            "full-fallback, both errors measured after a 1-pixel Gaussian blur of photo and renders",
+            fallback=True,
+            fallback_sigma=1.0,
+        ),
+        _method(
+            "full-anchor",
+            "GS-MSDR (full) + sharp anchor 0.25",
+            "gsmsdr",
+            "full; a quarter of the plain loss on the sharp render beside the blurred render's",
+            sharp_anchor_weight=0.25,
+        ),
         MethodSpec(
             "full-poses",
             "GS-MSDR (full) + pose refinement",

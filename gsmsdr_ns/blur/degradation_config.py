@@ -33,6 +33,10 @@ class DegradationConfig:
     """Weight of an image's previous running errors at each of its steps (0: its last step alone decides)."""
     fallback_margin: float = 0.0
     """The model is used once its error is below (1 - margin) times the sharp render's."""
+    fallback_sigma: float = 0.0
+    """Both errors are measured after a Gaussian blur of this standard deviation (pixels of the training render) of
+    the photo and both images: the pixel-scale noise of a render still being formed is not taken for blur the photo
+    has. 0: as they are."""
     switch_steps: Optional[Tuple[int, ...]] = None
     """Steps where HPKO goes one scale finer; None: follow the model's resolution schedule (recommended)."""
     linear_light: bool = True
@@ -88,6 +92,10 @@ class DegradationConfig:
     deconvolved_loss_eps: float = 0.01
     """Wiener regulariser of that weight: frequencies the blur keeps below sqrt(eps) are amplified at most
     eps^-1/2 times (10x), so noise and frequencies the blur removed are not blown up."""
+    sharp_anchor_weight: float = 0.0
+    """On steps that train the Gaussians through a blur model, also this times splatfacto's loss of the sharp render
+    against the photo (loss ``sharp_anchor``): the Gaussians cannot hide their own errors behind a blur that grows to
+    cover them. 0: off."""
 
     def __post_init__(self) -> None:
         if self.warmup < 0:
@@ -96,12 +104,16 @@ class DegradationConfig:
             raise ValueError(f"fallback_decay must be in [0, 1), got {self.fallback_decay}")
         if not 0.0 <= self.fallback_margin < 1.0:
             raise ValueError(f"fallback_margin must be in [0, 1), got {self.fallback_margin}")
+        if not self.fallback_sigma >= 0:
+            raise ValueError(f"fallback_sigma must be >= 0, got {self.fallback_sigma}")
         if not self.thin_lens_initial_aperture > 0:
             raise ValueError(f"thin_lens_initial_aperture must be > 0, got {self.thin_lens_initial_aperture}")
         if not self.deconvolved_loss_weight >= 0:
             raise ValueError(f"deconvolved_loss_weight must be >= 0, got {self.deconvolved_loss_weight}")
         if not self.deconvolved_loss_eps > 0:
             raise ValueError(f"deconvolved_loss_eps must be > 0, got {self.deconvolved_loss_eps}")
+        if not self.sharp_anchor_weight >= 0:
+            raise ValueError(f"sharp_anchor_weight must be >= 0, got {self.sharp_anchor_weight}")
         if not self.kernel_centre_weight >= 0:
             raise ValueError(f"kernel_centre_weight must be >= 0, got {self.kernel_centre_weight}")
         if not self.mask_reg_weight >= 0:

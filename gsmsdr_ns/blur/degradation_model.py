@@ -328,7 +328,7 @@ class DegradationModel(nn.Module):
         """After a step that ran ``plan``'s blur model: fold how well ``degraded`` and ``sharp`` (the render) explain
         ``target`` (all [H, W, 3]) into the gate."""
         if self.fallback is not None and plan.blur_scale is not None and plan.view_id is not None:
-            self.fallback.update(plan.view_id, photo_errors(degraded, sharp, target))
+            self.fallback.update(plan.view_id, photo_errors(degraded, sharp, target, self.config.fallback_sigma))
 
     def forward(
         self, rgb: Tensor, depth: Optional[Tensor], plan: DegradationPlan, K: Optional[Tensor] = None

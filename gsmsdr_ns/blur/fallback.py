@@ -10,16 +10,26 @@ detached render, so it can start explaining the photo later. No nerfstudio impor
 
 from __future__ import annotations
 
+import math
+
 import torch
+from kornia.filters import gaussian_blur2d
 from torch import Tensor, nn
 
 __all__ = ["ExplanationGate", "photo_errors"]
 
 
-def photo_errors(degraded: Tensor, sharp: Tensor, target: Tensor) -> Tensor:
-    """[2] detached mean absolute errors of ``degraded`` and ``sharp`` against ``target`` (all [H, W, 3])."""
+def photo_errors(degraded: Tensor, sharp: Tensor, target: Tensor, sigma: float = 0.0) -> Tensor:
+    """[2] detached mean absolute errors of ``degraded`` and ``sharp`` against ``target`` (all [H, W, 3]), measured
+    after a Gaussian blur of standard deviation ``sigma`` pixels of all three (0: as they are). The blur keeps what a
+    photo's own blur changes and removes the pixel-scale noise of a render still being formed, which any blur would
+    otherwise seem to explain."""
     with torch.no_grad():
-        return torch.stack([(degraded - target).abs().mean(), (sharp - target).abs().mean()]).float()
+        images = torch.stack([degraded, sharp, target]).permute(0, 3, 1, 2).float()  # [3, 3, H, W]
+        if sigma > 0:
+            size = 2 * math.ceil(3 * sigma) + 1
+            images = gaussian_blur2d(images, (size, size), (sigma, sigma), border_type="replicate")
+        return (images[:2] - images[2:]).abs().mean(dim=(1, 2, 3))
 
 
 class ExplanationGate(nn.Module):
