@@ -1,4 +1,4 @@
-"""The sharp anchor: on steps through a blur model, a share of splatfacto's loss on the sharp render."""
+"""The sharp anchor: on steps through the thin lens, a share of splatfacto's loss on the sharp render."""
 
 from __future__ import annotations
 
@@ -37,9 +37,10 @@ def test_the_anchor_adds_the_sharp_renders_loss_times_its_weight():
     assert float(grad.abs().sum()) > 0  # it trains the Gaussians
 
 
-def test_no_anchor_by_default_or_on_sharp_views():
+def test_no_anchor_by_default_nor_on_views_without_the_lens():
     assert DegradationConfig().sharp_anchor_weight == 0.0
     assert "sharp_anchor" not in _losses(0.0)[2]
     assert "sharp_anchor" not in _losses(0.5, kind="sharp")[2]
+    assert "sharp_anchor" not in _losses(0.5, kind="motion")[2]  # the field alone: no lens
     with pytest.raises(ValueError, match="sharp_anchor_weight"):
         DegradationConfig(sharp_anchor_weight=-1.0)

@@ -93,9 +93,9 @@ class DegradationConfig:
     """Wiener regulariser of that weight: frequencies the blur keeps below sqrt(eps) are amplified at most
     eps^-1/2 times (10x), so noise and frequencies the blur removed are not blown up."""
     sharp_anchor_weight: float = 0.0
-    """On steps that train the Gaussians through a blur model, also this times splatfacto's loss of the sharp render
-    against the photo (loss ``sharp_anchor``): the Gaussians cannot hide their own errors behind a blur that grows to
-    cover them. 0: off."""
+    """On steps that train the Gaussians through the thin lens, also this times splatfacto's loss of the sharp render
+    against the photo (loss ``sharp_anchor``): the Gaussians cannot hide their own errors behind a lens blur that
+    grows to cover them. 0: off."""
 
     def __post_init__(self) -> None:
         if self.warmup < 0:

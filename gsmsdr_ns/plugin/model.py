@@ -321,7 +321,7 @@ class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):
                 anchor = self.config.degradation_model.sharp_anchor_weight
                 if plan.fallback:  # a plain step for the Gaussians; the degradation models fit the photo alone
                     loss_dict["degradation_fit"] = self._photometric_loss(degraded, batch, outputs["background"])
-                elif anchor > 0 and plan.blur_scale is not None:
+                elif anchor > 0 and plan.thin_lens and plan.blur_scale is not None:
                     sharp_loss = self._photometric_loss(aux.sharp, batch, outputs["background"])
                     loss_dict["sharp_anchor"] = anchor * sharp_loss
                 deconvolved_target = target if aux.kernel_mean is not None else None
