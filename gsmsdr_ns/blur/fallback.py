@@ -56,11 +56,18 @@ class ExplanationGate(nn.Module):
         self.margin = float(margin)
         self.register_buffer("errors", torch.full((num_views, 2), float("nan")))
 
+    def views_using_model(self) -> Tensor:
+        """[N] bool: the images that train through their degradation model (False until measured and found to
+        explain the photo better than the sharp render; a NaN comparison is False)."""
+        return self.errors[:, 0] < (1.0 - self.margin) * self.errors[:, 1]
+
+    def views_measured(self) -> Tensor:
+        """[N] bool: the images whose errors have been measured at least once."""
+        return ~torch.isnan(self.errors[:, 0])
+
     def uses_model(self, view_id: int) -> bool:
-        """The Gaussians train through image ``view_id``'s degradation model (False until it has been measured
-        and found to explain the photo better than the sharp render)."""
-        degraded, sharp = self.errors[view_id].tolist()
-        return degraded < (1.0 - self.margin) * sharp  # False while NaN
+        """Whether image ``view_id`` trains through its degradation model (:meth:`views_using_model`)."""
+        return bool(self.views_using_model()[view_id])
 
     @torch.no_grad()
     def update(self, view_id: int, errors: Tensor) -> None:
@@ -71,6 +78,5 @@ class ExplanationGate(nn.Module):
 
     def fraction_using_model(self) -> Tensor:
         """Scalar: the share of measured images whose model is in use (0 when none is measured)."""
-        measured = ~torch.isnan(self.errors[:, 0])
-        using = self.errors[:, 0] < (1.0 - self.margin) * self.errors[:, 1]
-        return using.float().sum() / measured.float().sum().clamp(min=1.0)
+        measured = self.views_measured().float().sum().clamp(min=1.0)
+        return self.views_using_model().float().sum() / measured

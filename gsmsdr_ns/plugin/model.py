@@ -316,16 +316,18 @@ class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):
             aux = outputs.get("degradation")
             if aux is not None:
                 plan, degraded = outputs["degradation_plan"], outputs["rgb_degraded"]
-                target = self._training_target(outputs, batch)
-                self.degradation.record_errors(plan, degraded, aux.sharp, target)
+                target = None  # the training image, built only for the gate or the deconvolved loss
+                if self.degradation.fallback is not None or aux.kernel_mean is not None:
+                    target = self._training_target(outputs, batch)
+                if self.degradation.fallback is not None:
+                    self.degradation.record_errors(plan, degraded, aux.sharp, target)
                 anchor = self.config.degradation_model.sharp_anchor_weight
                 if plan.fallback:  # a plain step for the Gaussians; the degradation models fit the photo alone
                     loss_dict["degradation_fit"] = self._photometric_loss(degraded, batch, outputs["background"])
                 elif anchor > 0 and plan.thin_lens and plan.blur_scale is not None:
                     sharp_loss = self._photometric_loss(aux.sharp, batch, outputs["background"])
                     loss_dict["sharp_anchor"] = anchor * sharp_loss
-                deconvolved_target = target if aux.kernel_mean is not None else None
-                loss_dict.update(self.degradation.losses(aux, degraded, deconvolved_target))
+                loss_dict.update(self.degradation.losses(aux, degraded, target))
             self._check_finite(loss_dict)
         return loss_dict
 

@@ -103,9 +103,7 @@ def models_in_use(run) -> str:
     gate = getattr(getattr(run.model, "degradation", None), "fallback", None)
     if gate is None:
         return "-"
-    measured = ~torch.isnan(gate.errors[:, 0])
-    using = gate.errors[:, 0] < (1.0 - gate.margin) * gate.errors[:, 1]
-    return f"{int(using.sum())} / {int(measured.sum())}"
+    return f"{int(gate.views_using_model().sum())} / {int(gate.views_measured().sum())}"
 
 
 @torch.no_grad()
