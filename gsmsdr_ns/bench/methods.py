@@ -169,6 +169,13 @@ METHODS: Dict[str, MethodSpec] = {
             "full; a quarter of the plain loss on the sharp render beside the blurred render's",
             sharp_anchor_weight=0.25,
         ),
+        _method(
+            "full-lens-late",
+            "GS-MSDR (full), thin lens from the end of densification",
+            "gsmsdr",
+            "full; the thin lens starts when the Gaussians stop densifying (the field keeps its warm-up)",
+            thin_lens_start="densify_end",
+        ),
         MethodSpec(
             "full-poses",
             "GS-MSDR (full) + pose refinement",

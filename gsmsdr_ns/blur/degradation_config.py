@@ -10,7 +10,7 @@ turns it into ``--pipeline.model.degradation-model.*`` options.
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import Any, Dict, Mapping, Optional, Tuple
+from typing import Any, Dict, Literal, Mapping, Optional, Tuple
 
 from gsmsdr_ns.blur.losses import DegradationLossWeights
 
@@ -48,6 +48,11 @@ class DegradationConfig:
     follows the rendered depth, ``aperture * |1/d - 1/d_focus|``, with one aperture and focus per view
     (:class:`~gsmsdr_ns.blur.defocus.ThinLensDefocus`, optimizer group ``blur_defocus``). Motion-blurred and
     mixed-resolution images never pay for it."""
+    thin_lens_start: Literal["warmup", "densify_end"] = "warmup"
+    """When the thin lens starts: with the field after ``warmup``, or when the Gaussians stop densifying (the
+    model's ``stop_split_at``, never before ``warmup``). Until then images the lens models alone train plain steps,
+    and images with the field train through the field alone: a lens learnt on a render still being densified (from
+    random points above all) grows to hide the render's errors (docs/design.md)."""
     thin_lens_for_unknown_kind: bool = False
     """Also put the thin lens before the field on images blurred by an unknown kind of blur (no record, or an
     estimate that could not tell motion from defocus). Off: the field alone models their blur, whatever it is."""
@@ -106,6 +111,8 @@ class DegradationConfig:
             raise ValueError(f"fallback_margin must be in [0, 1), got {self.fallback_margin}")
         if not self.fallback_sigma >= 0:
             raise ValueError(f"fallback_sigma must be >= 0, got {self.fallback_sigma}")
+        if self.thin_lens_start not in ("warmup", "densify_end"):
+            raise ValueError(f"thin_lens_start must be 'warmup' or 'densify_end', got {self.thin_lens_start!r}")
         if not self.thin_lens_initial_aperture > 0:
             raise ValueError(f"thin_lens_initial_aperture must be > 0, got {self.thin_lens_initial_aperture}")
         if not self.deconvolved_loss_weight >= 0:

@@ -30,9 +30,10 @@ from gsmsdr_ns.blur.defocus import ThinLensDefocus
 from gsmsdr_ns.blur.degradation_config import DegradationConfig
 from gsmsdr_ns.blur.fallback import ExplanationGate, photo_errors
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig, blend
-from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo
+from gsmsdr_ns.blur.hpko import HPKOScheduler
 from gsmsdr_ns.blur.losses import DegradationAux, degradation_losses, kernel_centres, mean_blend_kernel
 from gsmsdr_ns.blur.maan import host_checked_view_ids
+from gsmsdr_ns.blur.plan import DegradationPlan, crop_margin
 from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, describe_profiles, effective_factor
 from gsmsdr_ns.blur.shake import CameraShake
@@ -48,58 +49,6 @@ __all__ = [
     "remap_legacy_keys",
     "with_fallback_state",
 ]
-
-
-class DegradationPlan(NamedTuple):
-    """What one training step simulates on top of the sharp render (all empty: a plain splatfacto step)."""
-
-    view_id: Optional[int] = None
-    """Index of the training image (``camera.metadata["cam_idx"]``); None for cameras outside the training set."""
-    blur_scale: Optional[ScaleInfo] = None
-    """HPKO scale the blur field runs at; None: the field is not evaluated."""
-    blur_uses_depth: bool = False
-    """The blur field reads the rendered depth (the rasterizer must produce it)."""
-    resolution_factor: float = 1.0
-    """Effective resolution-loss factor at the current render downscale; > 1: the resolution model runs."""
-    thin_lens: bool = False
-    """The image may be defocused: the blur field's thin lens blurs the render first (needs depth)."""
-    render_downscale: int = 1
-    """The render's downscale factor (the thin lens's aperture is in full-resolution pixels)."""
-    blur_field: bool = True
-    """The field's kernels run (after the lens, if any); False: a defocused image is modelled by the thin lens
-    alone."""
-    shake: bool = False
-    """The render is first blurred along the view's learnt camera rotation path (the image may be shaken)."""
-    margin: int = 0
-    """Pixels the render reaches beyond each border of the image (:meth:`DegradationModel.forward` blurs the
-    enlarged render, then crops them)."""
-    deconvolved_loss: bool = False
-    """The field's mean kernel is taken for the deconvolved loss (its weight > 0 and the field runs)."""
-    kernel_centre_loss: bool = False
-    """The field's kernel centres are taken for their regulariser (its weight > 0, the field runs, and the image's
-    pose was estimated from the photo)."""
-    has_model: bool = False
-    """The training image has a degradation model (its profile is not sharp), whether or not it runs at this step."""
-    fallback: bool = False
-    """The image trains as a plain step (its model does not yet explain the photo better than the sharp render):
-    the degradation models run on the detached render and learn alone (:meth:`DegradationModel.with_fallback`)."""
-
-    @property
-    def needs_depth(self) -> bool:
-        return self.blur_scale is not None and ((self.blur_uses_depth and self.blur_field) or self.thin_lens)
-
-    @property
-    def is_plain(self) -> bool:
-        """Nothing to simulate: outputs["rgb"] is the sharp render."""
-        return self.blur_scale is None and self.resolution_factor <= 1.0
-
-
-def crop_margin(x: Tensor, margin: int, dims: Tuple[int, int] = (-2, -1)) -> Tensor:
-    """``x`` without ``margin`` entries at both ends of the two image dimensions ``dims`` (rows, columns)."""
-    if margin <= 0:
-        return x
-    x = x.narrow(dims[0], margin, x.shape[dims[0]] - 2 * margin)
-    return x.narrow(dims[1], margin, x.shape[dims[1]] - 2 * margin)
 
 
 def _lens_for(profile: DegradationProfile, config: DegradationConfig) -> bool:
@@ -138,6 +87,9 @@ class DegradationModel(nn.Module):
         num_downscales: splatfacto's ``num_downscales`` (training starts at 1 / 2^num_downscales).
         resolution_schedule: splatfacto's ``resolution_schedule`` (steps between resolution doublings).
         preview_max_side: the viewer outputs' working resolution (see :meth:`preview`; 0: full resolution).
+        densify_until: the step the Gaussians stop densifying (splatfacto's ``stop_split_at``), where the thin lens
+            starts when the config's ``thin_lens_start`` is ``"densify_end"``; None: unknown, the lens starts with
+            the field.
 
     Attributes (None when no image needs them): ``camera_shake`` (:class:`CameraShake`), ``thin_lens``
     (:class:`ThinLensDefocus`), ``blur_field`` (:class:`BlurField`), ``hpko`` (:class:`HPKOScheduler`),
@@ -158,10 +110,15 @@ class DegradationModel(nn.Module):
         num_downscales: int = 2,
         resolution_schedule: int = 3000,
         preview_max_side: int = 128,
+        densify_until: Optional[int] = None,
     ) -> None:
         super().__init__()
         self.profiles: List[DegradationProfile] = list(profiles)
         self.config = config = DegradationConfig() if config is None else config
+        self.lens_start = config.warmup
+        """First step the thin lens runs (:attr:`DegradationConfig.thin_lens_start`)."""
+        if config.thin_lens_start == "densify_end" and densify_until is not None:
+            self.lens_start = max(config.warmup, int(densify_until))
         self.preview_max_side = int(preview_max_side)
         self.blur_field: Optional[BlurField] = None
         self.thin_lens: Optional[ThinLensDefocus] = None
@@ -282,7 +239,8 @@ class DegradationModel(nn.Module):
 
         Nothing for sharp images. The blur field runs once the HPKO scheduler is past its warm-up, at the scale of
         ``render_downscale`` (so it follows the resolution schedule; explicit ``switch_steps`` take over when set);
-        the resolution model runs while the image's factor, relative to ``render_downscale``, is still > 1.
+        the resolution model runs while the image's factor, relative to ``render_downscale``, is still > 1. The thin
+        lens runs from :attr:`lens_start`; before it an image the lens models alone is a plain step.
         """
         if view_id is None:
             return DegradationPlan()
@@ -297,16 +255,20 @@ class DegradationModel(nn.Module):
         if profile.needs_resolution_model and self.resolution_model is not None:
             assert profile.mixres_factor is not None  # needs_resolution_model: a known factor > 1
             factor = effective_factor(profile.mixres_factor, render_downscale)
+        config = self.config
+        lens = self.thin_lens is not None and _lens_for(profile, config)
+        runs_field = not self.lens_alone(view_id)
+        if lens and step < self.lens_start:
+            lens = False
+            blur_scale = blur_scale if runs_field else None  # an image the lens models alone waits for it
         if field is None or blur_scale is None:
             return DegradationPlan(view_id, resolution_factor=factor, render_downscale=render_downscale, has_model=True)
-        config = self.config
-        runs_field = not self.lens_alone(view_id)
         return DegradationPlan(
             view_id=view_id,
             blur_scale=blur_scale,
             blur_uses_depth=field.uses_depth,
             resolution_factor=factor,
-            thin_lens=self.thin_lens is not None and _lens_for(profile, config),
+            thin_lens=lens,
             render_downscale=render_downscale,
             blur_field=runs_field,
             shake=self.camera_shake is not None and profile.motion,

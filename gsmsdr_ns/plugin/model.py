@@ -152,6 +152,7 @@ class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):
             num_downscales=self.config.num_downscales,
             resolution_schedule=self.config.resolution_schedule,
             preview_max_side=self.config.viewer_blur_max_side,
+            densify_until=self.config.stop_split_at,
         )
         if self.num_train_data > 0:
             CONSOLE.log(f"gsmsdr: training views: {self.degradation.describe_training_views()}")
