@@ -20,6 +20,7 @@ from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo, kernel_prior_logits, k
 from gsmsdr_ns.blur.losses import DegradationAux, degradation_losses, mask_regulariser
 from gsmsdr_ns.blur.maan import GAKA, MCA, SAFM, BAGSFeatures, RGBDFeatures, normalize_depth, positional_encoding_2d
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, effective_factor
+from gsmsdr_ns.ops.grid_kernels import GridKernels
 from gsmsdr_ns.ops.mixres import resolution_loss
 from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels, apply_pixel_kernels
 
@@ -624,6 +625,15 @@ def test_view_mode_has_no_feature_network_and_blurs_by_one_kernel_per_view():
     assert torch.equal(mask, torch.ones(2, 1, 16, 24))
     fast = f.degrade(render, weights, mask)
     torch.testing.assert_close(fast, apply_pixel_kernels(render, weights.contiguous()))
+    # training's form: each kernel as a grid of one cell, the same blur and the same gradient
+    grid, grid_mask = f(render, None, view_ids, 3, dense=False)
+    assert isinstance(grid, GridKernels) and grid.weights.shape == (2, 25, 1, 1) and grid.size == (16, 24)
+    assert torch.equal(grid.dense(), weights) and torch.equal(grid_mask, mask)
+    logits = f.heads.view_logits["3"]
+    (dense_grad,) = torch.autograd.grad(f.degrade(render, weights, mask).square().sum(), logits)
+    (grid_grad,) = torch.autograd.grad(f.degrade(render, grid, grid_mask).square().sum(), logits)
+    torch.testing.assert_close(grid_grad, dense_grad)
+    assert dense_grad[view_ids].abs().sum() > 0
     with pytest.raises(ValueError, match="view_ids"):
         f(render, None, torch.tensor([0, NUM_VIEWS]), 3)
     with pytest.raises(ValueError, match="no feature network"):
@@ -643,3 +653,15 @@ def test_apply_image_kernels_matches_the_per_pixel_version_in_float64():
         torch.testing.assert_close(a, b, rtol=0, atol=1e-10)
     with pytest.raises(ValueError, match="kernels"):
         apply_image_kernels(image, kernels[:1])
+
+
+@pytest.mark.parametrize("dtype, size, K", [(torch.float32, (37, 52), 17), (torch.float32, (5, 6), 9),
+                                            (torch.bfloat16, (9, 12), 5)])  # fmt: skip
+def test_apply_image_kernels_in_other_dtypes_and_kernels_larger_than_the_image(dtype, size, K):
+    g = torch.Generator().manual_seed(4)
+    image = torch.rand(1, 3, *size, generator=g).to(dtype)
+    kernels = torch.softmax(torch.randn(1, K * K, generator=g), dim=1).to(dtype)
+    out = apply_image_kernels(image, kernels)
+    ref = apply_pixel_kernels(image.double(), kernels.double()[:, :, None, None].expand(-1, -1, *size).contiguous())
+    assert out.dtype == dtype and out.shape == image.shape
+    torch.testing.assert_close(out.double(), ref, rtol=0, atol=1e-5 if dtype == torch.float32 else 2e-2)

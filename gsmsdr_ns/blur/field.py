@@ -282,6 +282,8 @@ class BlurField(nn.Module):
             mask: [B, 1, H, W] in (0, 1).
         """
         factor = int(self.config.feature_downsample)
+        if self.mcf is None and not dense:
+            return self._predict_per_image(render, view_ids, scale)
         if self.mcf is None or factor == 1:
             return self._predict_per_pixel(render, depth, view_ids, scale)
         check_bchw(render, "render", 3)
@@ -291,6 +293,14 @@ class BlurField(nn.Module):
         kernels, mask = self.heads(features, scale, view_ids)
         grid_kernels = GridKernels(kernels, factor, size)
         return (grid_kernels.dense() if dense else grid_kernels), upsample_grid(mask, factor, size)
+
+    def _predict_per_image(self, render: Tensor, view_ids: Tensor, scale: int) -> Tuple[GridKernels, Tensor]:
+        """Mode view: each image's kernel as a grid of one cell (no [B, K*K, H, W] tensor, nor its gradient)."""
+        check_bchw(render, "render", 3)
+        check_view_ids(view_ids, render.shape[0], self.num_train_views)
+        size = (render.shape[-2], render.shape[-1])
+        kernels, mask = self.heads(view_ids, scale, 1, 1)
+        return GridKernels(kernels, max(size), size), mask.expand(-1, -1, *size)
 
     def _predict_per_pixel(
         self, render: Tensor, depth: Optional[Tensor], view_ids: Tensor, scale: int
@@ -310,14 +320,18 @@ class BlurField(nn.Module):
         Args:
             render: [B, C, H, W]; sRGB-encoded in [0, 1] when ``linear_light``.
             kernel_weights: [B, K*K, H, W]; expanded with stride 0 over the pixels (mode "view"), applied as one
-                convolution per image; or :class:`GridKernels` (``forward(..., dense=False)``), resampled on the fly.
+                convolution per image; or :class:`GridKernels` (``forward(..., dense=False)``), resampled on the fly
+                (a grid of one cell, mode "view": one convolution per image).
             linear_light: blur linear light (a camera's blur) instead of the encoded values.
         Returns:
             [B, C, H, W], in the render's dtype (or wider). Kernels predicted in a lower precision (the heads under
             ``torch.autocast``) are applied in the render's dtype.
         """
         source = rgb_to_linear_rgb(render) if linear_light else render
-        if isinstance(kernel_weights, GridKernels):
+        if isinstance(kernel_weights, GridKernels) and kernel_weights.weights.shape[-2:] == (1, 1):
+            # a grid of one cell (mode "view"): one kernel for the whole image
+            blurred = apply_image_kernels(source, kernel_weights.weights[:, :, 0, 0])
+        elif isinstance(kernel_weights, GridKernels):
             blurred = apply_grid_kernels(source, kernel_weights.weights.to(source.dtype), kernel_weights.factor)
         elif kernel_weights.dim() == 4 and kernel_weights.stride(-1) == 0 and kernel_weights.stride(-2) == 0:
             # one kernel per image, expanded over the pixels (mode "view"): a depthwise convolution

@@ -82,7 +82,10 @@ class GridKernels(NamedTuple):
     """(H, W) of the image."""
 
     def dense(self) -> Tensor:
-        """[B, K*K, H, W]: the kernels resampled to every pixel (:func:`upsample_grid`)."""
+        """[B, K*K, H, W]: the kernels resampled to every pixel (:func:`upsample_grid`); a grid of one cell is
+        expanded (stride 0) instead of copied."""
+        if self.weights.shape[-2:] == (1, 1):
+            return self.weights.expand(-1, -1, *self.size)
         return upsample_grid(self.weights, self.factor, self.size)
 
 
