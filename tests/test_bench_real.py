@@ -90,6 +90,18 @@ def test_shipped_real_suite_parses() -> None:
     assert suite.threads == 1 and "registered" in suite.scenes[0].describe()
 
 
+def test_shipped_real_size_suite_trains_fern_at_its_photos_size_and_a_600x400_scene() -> None:
+    suite = load_suite(find_suite_file("real-size"))
+    fern, generated = suite.scenes
+    assert fern.real is not None and fern.real.train_downscale == 1 and fern.real.images == "images_8"
+    assert fern.real.preset == "motion-strong"
+    assert generated.spec is not None and (generated.spec.width, generated.spec.height) == (600, 400)
+    assert generated.spec.variant == "motion-strong"
+    assert suite.methods == ["plain", "full", "view", "gsmsdr-lite", "sharp"]
+    assert all(scene.supports(METHODS[m]) for scene in suite.scenes for m in suite.methods)
+    assert suite.threads == 2 and suite.eval_every > 0  # both threads; PSNR along the run, against wall time
+
+
 def test_runs_that_train_on_estimated_records_rerun_when_the_estimate_changes(monkeypatch) -> None:
     import gsmsdr_ns.estimate.records as records
 
