@@ -15,6 +15,15 @@ from gsmsdr_ns import timing_hooks
 from gsmsdr_ns.blur import BlurFieldConfig, DegradationConfig
 
 
+def _tensors(value):
+    """The tensors in ``value``, a tensor or nested tuples of them, in order."""
+    if isinstance(value, torch.Tensor):
+        yield value
+    elif isinstance(value, tuple):
+        for item in value:
+            yield from _tensors(item)
+
+
 class ListRecorder:
     """Records (kind, category) events; calls through unchanged."""
 
@@ -24,8 +33,8 @@ class ListRecorder:
     def record(self, category, function, args, kwargs):
         self.events.append(("timed", category))
         out = function(*args, **kwargs)
-        first = next((t for t in (out if isinstance(out, tuple) else (out,)) if isinstance(t, torch.Tensor)), None)
-        if first is not None and first.requires_grad:
+        first = next((t for t in _tensors(out) if t.requires_grad), None)  # kernels may come as a GridKernels tuple
+        if first is not None:
             first.register_hook(lambda _grad: self.events.append(("backward", category)))
         return out
 
