@@ -45,6 +45,7 @@ from gsmsdr_ns.blur.degradation_model import (
 from gsmsdr_ns.blur.field import BlurFieldConfig
 from gsmsdr_ns.blur.profile import training_profiles
 from gsmsdr_ns.data.effects import DegradationMode
+from gsmsdr_ns.ops.ssim import SSIM
 from gsmsdr_ns.plugin.cameras import TrainImageSizes, intrinsics_at_scale, viewmats_from_camera_to_worlds
 from gsmsdr_ns.plugin.checkpoint_compat import (
     check_camera_shake,
@@ -131,6 +132,7 @@ class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):
         lpips_path = lpips_backbone_cache_path()
         with contextlib.nullcontext() if lpips_path.is_file() else lpips_disabled():
             super().populate_modules()
+        self.ssim = SSIM()  # splatfacto's SSIM, its five filtered maps in two convolutions instead of ten
         self.seed_points = original_seed
         if seed is not None:
             write_seed_colours(self.gauss_params["features_dc"], seed[1], self.config.sh_degree)
