@@ -167,7 +167,7 @@ def cpu_trainer_config(scene: Path, output_dir: Path, max_steps: int):
     model = config.pipeline.model
     model.num_downscales, model.warmup_length = 0, 2
     model.blur_field = BlurFieldConfig(size="lite", kernel_sizes=(3, 5, 9))
-    model.degradation_model = DegradationConfig(warmup=0, thin_lens_for_unknown_kind=True)
+    model.degradation_model = DegradationConfig(warmup=0, thin_lens_for_unknown_kind=True, thin_lens_start="warmup")
     return config
 
 

@@ -93,7 +93,9 @@ def test_a_view_trains_plain_until_its_lens_explains_the_photo_then_through_it()
     """Defocused views with a wide initial lens. First visit: ``rgb`` is the sharp render, the Gaussians get the
     plain loss's gradient alone and the lens only ``degradation_fit``'s. Once the photo is one the lens explains (the
     target is the lens's own blur), the next visit trains through the lens."""
-    options = DegradationConfig(warmup=0, thin_lens_initial_aperture=20.0, fallback=True, fallback_decay=0.0)
+    options = DegradationConfig(
+        warmup=0, thin_lens_initial_aperture=20.0, fallback=True, fallback_decay=0.0, thin_lens_start="warmup"
+    )
     model = build({"degradations": records("defocus", 2)}, n=2, degradation_model=options, background_color="black",
                   num_downscales=0)  # fmt: skip
     model.train()
@@ -168,7 +170,7 @@ def test_nerfstudio_trainer_trains_a_defocus_scene_with_the_fallback(tmp_path):
     from test_plugin_blur import InProcessTrainer, make_variant
 
     scene = make_variant(tmp_path / "defocus", "defocus")
-    options = DegradationConfig(warmup=2, fallback=True)
+    options = DegradationConfig(warmup=2, fallback=True, thin_lens_start="warmup")
     run = InProcessTrainer(scene, tmp_path, warmup=2, degradation_model=options)
     run.train(24)
     gate = run.model.degradation.fallback

@@ -30,9 +30,10 @@ def test_a_lens_alone_image_trains_plain_steps_until_densification_stops():
     assert before.is_plain and before.has_model and not before.thin_lens
     after = model.plan(0, 1, step=40)
     assert after.thin_lens and not after.blur_field and not after.is_plain
-    # by default the lens starts with the field
-    default = _model("warmup")
-    assert default.lens_start == 10 and default.plan(0, 1, step=10).thin_lens
+    # the other choice: the lens starts with the field
+    early = _model("warmup")
+    assert early.lens_start == 10 and early.plan(0, 1, step=10).thin_lens
+    assert DegradationConfig().thin_lens_start == "densify_end"  # the default
 
 
 def test_the_field_keeps_its_warm_up_and_motion_is_untouched():

@@ -273,8 +273,8 @@ def test_thin_lens_blurs_defocused_images_only_and_learns(mode):
     """Views 0-1 defocused, 2-3 motion-blurred: the lens runs (and gets gradients) for views 0-1 only, before the
     field, and its depth-driven blur is part of the simulated image."""
     metadata = {"degradations": records("defocus", 2) + records("motion", 2)}
-    model = build(metadata, blur_field=BlurFieldConfig(mode=mode),
-                  degradation_model=DegradationConfig(warmup=0, thin_lens_initial_aperture=20.0))  # fmt: skip
+    options = DegradationConfig(warmup=0, thin_lens_initial_aperture=20.0, thin_lens_start="warmup")
+    model = build(metadata, blur_field=BlurFieldConfig(mode=mode), degradation_model=options)
     model.train()
     model.optimizers = None
     lens = model.degradation.thin_lens
@@ -306,7 +306,9 @@ def test_defocus_only_images_skip_the_field_unless_asked(defocus_field):
     both = {"split": "train", "degraded": True, "effects": {"motion": {}, "defocus": {}}}
     unknown = {"split": "train"}
     metadata = {"degradations": records("defocus", 1) + [both, unknown] + records("sharp", 1)}
-    config = DegradationConfig(warmup=0, thin_lens_initial_aperture=20.0, defocus_field=defocus_field)
+    config = DegradationConfig(
+        warmup=0, thin_lens_initial_aperture=20.0, defocus_field=defocus_field, thin_lens_start="warmup"
+    )
     model = build(metadata, degradation_model=config)
     model.train()
     model.optimizers = None
@@ -593,10 +595,11 @@ def test_ns_train_gsmsdr_with_the_view_mode_field(scenes, tmp_path):
 
 def test_ns_train_on_a_defocus_scene_trains_the_thin_lens(scenes, tmp_path):
     """A defocused scene through ns-train: the thin lens is in the checkpoint with its own optimizer, its
-    parameters moved from their start, and every view's focus was initialised from its rendered depth."""
+    parameters moved from their start once densification stopped (step 10 here, where it starts by default), and
+    every view's focus was initialised from its rendered depth."""
     args = ["gsmsdr-lite", "--data", scenes["defocus"], "--output-dir", tmp_path / "outputs", "--timestamp", "lens",
             "--max-num-iterations", 30, "--steps-per-save", 30, *TRAIN_FLAGS, *BLUR_FLAGS,
-            "--pipeline.model.blur-field.mode", "view"]  # fmt: skip
+            "--pipeline.model.blur-field.mode", "view", "--pipeline.model.stop-split-at", 10]  # fmt: skip
     proc = run_cli("ns-train", args, cwd=tmp_path)
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-5000:]
     run_dir = tmp_path / "outputs" / "defocus" / "gsmsdr-lite" / "lens"

@@ -11,7 +11,9 @@ from gsmsdr_ns.blur import DegradationConfig
 
 
 def _losses(weight: float, kind: str = "defocus"):
-    options = DegradationConfig(warmup=0, thin_lens_initial_aperture=20.0, sharp_anchor_weight=weight)
+    options = DegradationConfig(
+        warmup=0, thin_lens_initial_aperture=20.0, sharp_anchor_weight=weight, thin_lens_start="warmup"
+    )
     model = build({"degradations": records(kind, 2)}, n=2, degradation_model=options, background_color="black",
                   num_downscales=0)  # fmt: skip
     model.train()

@@ -70,7 +70,7 @@ def test_a_defocus_and_motion_step_reports_every_stage():
     both = {"split": "train", "degraded": True, "effects": {"motion": {}, "defocus": {}}}
     metadata = {"degradations": [both] + records("mixres", 2)[1:] + records("sharp", 1)}
     model = build(metadata, n=3, num_downscales=0, blur_field=BlurFieldConfig(mode="view"),
-                  degradation_model=DegradationConfig(warmup=0))  # fmt: skip
+                  degradation_model=DegradationConfig(warmup=0, thin_lens_start="warmup"))  # fmt: skip
     model.train()
     model.optimizers = None
     recorder = ListRecorder()

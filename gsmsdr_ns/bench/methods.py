@@ -170,11 +170,11 @@ METHODS: Dict[str, MethodSpec] = {
             sharp_anchor_weight=0.25,
         ),
         _method(
-            "full-lens-late",
-            "GS-MSDR (full), thin lens from the end of densification",
+            "full-lens-early",
+            "GS-MSDR (full), thin lens from the field's warm-up",
             "gsmsdr",
-            "full; the thin lens starts when the Gaussians stop densifying (the field keeps its warm-up)",
-            thin_lens_start="densify_end",
+            "full with the thin lens from the end of the field's warm-up instead of the end of densification",
+            thin_lens_start="warmup",
         ),
         MethodSpec(
             "full-poses",

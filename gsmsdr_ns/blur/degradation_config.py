@@ -48,11 +48,12 @@ class DegradationConfig:
     follows the rendered depth, ``aperture * |1/d - 1/d_focus|``, with one aperture and focus per view
     (:class:`~gsmsdr_ns.blur.defocus.ThinLensDefocus`, optimizer group ``blur_defocus``). Motion-blurred and
     mixed-resolution images never pay for it."""
-    thin_lens_start: Literal["warmup", "densify_end"] = "warmup"
-    """When the thin lens starts: with the field after ``warmup``, or when the Gaussians stop densifying (the
-    model's ``stop_split_at``, never before ``warmup``). Until then images the lens models alone train plain steps,
-    and images with the field train through the field alone: a lens learnt on a render still being densified (from
-    random points above all) grows to hide the render's errors (docs/design.md)."""
+    thin_lens_start: Literal["warmup", "densify_end"] = "densify_end"
+    """When the thin lens starts: when the Gaussians stop densifying (the model's ``stop_split_at``, never before
+    ``warmup``), or with the field after ``warmup``. Until then images the lens models alone train plain steps, and
+    images with the field train through the field alone: a lens learnt on a render still being densified (from
+    random points above all) grows to hide the render's errors, and the defocused scene ends below plain Gaussians
+    (docs/design.md)."""
     thin_lens_for_unknown_kind: bool = False
     """Also put the thin lens before the field on images blurred by an unknown kind of blur (no record, or an
     estimate that could not tell motion from defocus). Off: the field alone models their blur, whatever it is."""
