@@ -57,6 +57,7 @@ def test_the_plugin_model_starts_the_lens_at_its_stop_split_at():
     model = build({"degradations": records("defocus", 2)}, n=2, degradation_model=options, background_color="black",
                   num_downscales=0, stop_split_at=7)  # fmt: skip
     assert model.degradation.lens_start == 7
+    assert "thin lens for defocus from step 7" in model.degradation.describe()  # the log says when it starts
     model.train()
     model.optimizers = None
     camera = make_camera(look_from([2.0, 0.5, 1.0]), width=48, height=36)

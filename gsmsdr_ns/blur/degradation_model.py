@@ -166,7 +166,7 @@ class DegradationModel(nn.Module):
         if self.blur_field is not None:
             assert self.hpko is not None
             depth = "RGB-D" if self.blur_field.uses_depth else "RGB"
-            lens = ", thin lens for defocus" if self.thin_lens is not None else ""
+            lens = f", thin lens for defocus from step {self.lens_start}" if self.thin_lens is not None else ""
             parts.append(f"blur field ({self.blur_field.config.mode}, {depth}, kernels {self.hpko.kernel_sizes}{lens})")
         if self.resolution_model is not None:
             parts.append("resolution-loss model")
