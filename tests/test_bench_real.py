@@ -74,8 +74,10 @@ def built(photo_set, tmp_path_factory) -> dict:
 
 def test_shipped_real_suite_parses() -> None:
     suite = load_suite(find_suite_file("real"))
-    assert [s.name for s in suite.scenes] == ["fern-motion", "fern-defocus", "fern-defocus-disk", "fern-sharp"]
-    motion, defocus, disk, sharp = (s.real for s in suite.scenes)
+    names = ["fern-motion", "fern-defocus", "fern-defocus-disk", "fern-defocus-disk-random", "fern-sharp"]
+    assert [s.name for s in suite.scenes] == names
+    motion, defocus, disk, disk_random, sharp = (s.real for s in suite.scenes)
+    assert disk_random == disk and suite.scenes[3].random_init and not suite.scenes[2].random_init
     assert motion.dataset == "llff-fern" and motion.preset == "motion-strong" and sharp.preset == "sharp"
     assert defocus.preset == "defocus-strong" and disk.preset == "defocus-disk"
     assert motion.images == defocus.images == disk.images == sharp.images  # the YAML merge key
