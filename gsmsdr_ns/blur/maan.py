@@ -21,12 +21,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from gsmsdr_ns.ops.dilated_conv import dilated_conv2d_same
-
 __all__ = [
     "ChannelLayerNorm",
     "LKA",
-    "SameDilatedConv2d",
     "DWSeparableConv",
     "GAKA",
     "SAFM",
@@ -110,21 +107,6 @@ class ChannelLayerNorm(nn.Module):
         return x * self.weight[:, None, None] + self.bias[:, None, None]
 
 
-class SameDilatedConv2d(nn.Conv2d):
-    """``nn.Conv2d(in, out, k, padding=(k // 2) * dilation, dilation=dilation, groups=groups)`` (same parameters and
-    state-dict keys) that runs on the CPU as :func:`~gsmsdr_ns.ops.dilated_conv.dilated_conv2d_same`, twice as fast
-    there as PyTorch's dilated convolution. [B, C_in, H, W] -> [B, C_out, H, W]."""
-
-    def __init__(self, in_channels: int, out_channels: int, kernel: int, dilation: int, groups: int = 1) -> None:
-        pad = (kernel // 2) * dilation
-        super().__init__(in_channels, out_channels, kernel, padding=pad, dilation=dilation, groups=groups)
-
-    def forward(self, x: Tensor) -> Tensor:
-        if x.device.type != "cpu":
-            return super().forward(x)
-        return dilated_conv2d_same(x, self.weight, self.bias, self.dilation[0], self.groups)
-
-
 class LKA(nn.Module):
     """Large-kernel attention (paper eq. 6): ``x * PW(DWD(DW(x)))``.
 
@@ -136,7 +118,8 @@ class LKA(nn.Module):
     def __init__(self, channels: int, kernel: int, dilated_kernel: int, dilation: int) -> None:
         super().__init__()
         self.dw = nn.Conv2d(channels, channels, kernel, padding=kernel // 2, groups=channels)
-        self.dwd = SameDilatedConv2d(channels, channels, dilated_kernel, dilation, groups=channels)
+        pad = (dilated_kernel // 2) * dilation
+        self.dwd = nn.Conv2d(channels, channels, dilated_kernel, padding=pad, dilation=dilation, groups=channels)
         self.pw = nn.Conv2d(channels, channels, 1)
 
     def forward(self, x: Tensor) -> Tensor:
@@ -412,7 +395,7 @@ class MCA(nn.Module):
         )
         self.groups = [channels // 4 + (1 if i < channels % 4 else 0) for i in range(4)]
         self.branches = nn.ModuleList(
-            nn.Sequential(SameDilatedConv2d(c, c, 3, d), ChannelLayerNorm(c), nn.ReLU())
+            nn.Sequential(nn.Conv2d(c, c, 3, padding=d, dilation=d), ChannelLayerNorm(c), nn.ReLU())
             for d, c in zip(range(1, 5), self.groups)
         )
         self.fuse = nn.Conv2d(channels, channels, 1)

@@ -7,7 +7,6 @@ CPU, a C++/OpenMP kernel (``csrc/``, built on first use by :mod:`gsmsdr_ns._cpp_
 * :mod:`.disk_kernels`: a thin lens's per-pixel disk kernels (reference); :mod:`.disk_defocus`: the same, fused;
 * :mod:`.mixres`: the mixed-resolution down-up operator (``apply_mixres``, ``resolution_loss``);
 * :mod:`.deconvolved_loss`: the residual weighted by the inverse of an image's mean blur;
-* :mod:`.dilated_conv`: a dilated "same" convolution as an undilated one on the image's polyphase components;
 * :mod:`.ssim`: splatfacto's training SSIM with its five filtered maps in two grouped convolutions.
 
 Imports only torch, kornia and the standard library (never ``blur``, ``degrade``, ``data`` or nerfstudio).
