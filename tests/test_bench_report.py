@@ -71,3 +71,11 @@ def test_the_header_says_at_which_commits_reused_records_were_trained(tmp_path):
     assert "git bbbbbbb" in text and "- runs trained at git aaaaaaa (4), bbbbbbb (2)" in text
     same = [dict(r, machine=machine) for r in records]  # every run trained by the code that writes the table
     assert "runs trained at git" not in format_markdown(suite, same, machine=machine)
+
+
+def test_records_name_the_commit_the_process_imported(monkeypatch):
+    """A suite imports its code once: a checkout that moves on while it trains does not change its records' commit."""
+    import gsmsdr_ns.bench.machine as machine
+
+    monkeypatch.setattr(machine, "git_revision", lambda: "moved-on")
+    assert machine.machine_info()["git"] == machine.GIT_AT_IMPORT != "moved-on"

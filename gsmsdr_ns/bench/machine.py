@@ -6,11 +6,31 @@ import os
 import platform
 import subprocess
 from pathlib import Path
-from typing import Any, Dict, Mapping
+from typing import Any, Dict, Mapping, Optional
+
+
+def git_revision() -> Optional[str]:
+    """Short commit of the repository this package is in, ``+dirty`` with uncommitted changes to tracked files; None
+    outside a git checkout."""
+    try:
+        root = Path(__file__).resolve().parents[2]
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
+                                text=True, timeout=10).stdout.strip()  # fmt: skip
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10).stdout.strip()  # fmt: skip
+        return (commit + ("+dirty" if dirty else "")) if commit else None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+GIT_AT_IMPORT = git_revision()
+"""The commit checked out when this module was imported: the code this process runs. A suite imports its code
+once, so its records name that commit even when the checkout moves on while it trains."""
 
 
 def machine_info() -> Dict[str, Any]:
-    """CPU model and cores, torch version and threads, device, for the results header and every record."""
+    """CPU model and cores, torch version and threads, device, and the code's commit (:data:`GIT_AT_IMPORT`), for the
+    results header and every record."""
     import torch
 
     cpu = platform.processor() or platform.machine()
@@ -34,15 +54,7 @@ def machine_info() -> Dict[str, Any]:
         "platform": platform.platform(terse=True),
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
     }
-    try:
-        root = Path(__file__).resolve().parents[2]
-        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
-                                text=True, timeout=10).stdout.strip()  # fmt: skip
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, timeout=10).stdout.strip()  # fmt: skip
-        info["git"] = (commit + ("+dirty" if dirty else "")) if commit else None
-    except (OSError, subprocess.SubprocessError):
-        info["git"] = None
+    info["git"] = GIT_AT_IMPORT
     return info
 
 
@@ -52,4 +64,4 @@ def describe_machine(info: Mapping[str, Any]) -> str:
             f"device {info['device']}{gpu}")  # fmt: skip
 
 
-__all__ = ["describe_machine", "machine_info"]
+__all__ = ["GIT_AT_IMPORT", "describe_machine", "git_revision", "machine_info"]
