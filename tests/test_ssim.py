@@ -32,7 +32,7 @@ def test_identical_images_score_one_and_shapes_are_checked():
     assert "window" not in SSIM().state_dict()  # checkpoints unchanged
 
 
-def test_the_model_trains_with_it():
+def test_the_model_uses_it_for_splatfactos_loss():
     from test_plugin_blur import build, records
 
     model = build({"degradations": records("sharp", 2)}, n=2)
