@@ -19,8 +19,9 @@ from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels_unfold
 
 needs_cpp = pytest.mark.skipif(not grid_kernels_cpp_available(), reason="no C++ compiler for the grid-kernel op")
 
-# (H, W, factor, K): factors that divide the image and factors that leave a partial last cell, one-row images
-CASES = [(13, 17, 4, 5), (12, 16, 2, 3), (7, 9, 3, 5), (1, 5, 2, 3), (6, 6, 2, 1), (9, 4, 5, 3)]
+# (H, W, factor, K): factors that divide the image and factors that leave a partial last cell, one-row images, and a
+# grid of one cell (one kernel for the whole image, mode "view")
+CASES = [(13, 17, 4, 5), (12, 16, 2, 3), (7, 9, 3, 5), (1, 5, 2, 3), (6, 6, 2, 1), (9, 4, 5, 3), (5, 7, 8, 5)]
 
 
 def reference(image: torch.Tensor, grid: torch.Tensor, factor: int) -> torch.Tensor:

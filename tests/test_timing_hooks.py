@@ -12,16 +12,8 @@ from test_plugin_blur import build, records
 from test_plugin_model import look_from, make_camera
 
 from gsmsdr_ns import timing_hooks
+from gsmsdr_ns.bench.timing import _tensors
 from gsmsdr_ns.blur import BlurFieldConfig, DegradationConfig
-
-
-def _tensors(value):
-    """The tensors in ``value``, a tensor or nested tuples of them, in order."""
-    if isinstance(value, torch.Tensor):
-        yield value
-    elif isinstance(value, tuple):
-        for item in value:
-            yield from _tensors(item)
 
 
 class ListRecorder:

@@ -328,10 +328,7 @@ class BlurField(nn.Module):
             ``torch.autocast``) are applied in the render's dtype.
         """
         source = rgb_to_linear_rgb(render) if linear_light else render
-        if isinstance(kernel_weights, GridKernels) and kernel_weights.weights.shape[-2:] == (1, 1):
-            # a grid of one cell (mode "view"): one kernel for the whole image
-            blurred = apply_image_kernels(source, kernel_weights.weights[:, :, 0, 0])
-        elif isinstance(kernel_weights, GridKernels):
+        if isinstance(kernel_weights, GridKernels):
             blurred = apply_grid_kernels(source, kernel_weights.weights.to(source.dtype), kernel_weights.factor)
         elif kernel_weights.dim() == 4 and kernel_weights.stride(-1) == 0 and kernel_weights.stride(-2) == 0:
             # one kernel per image, expanded over the pixels (mode "view"): a depthwise convolution

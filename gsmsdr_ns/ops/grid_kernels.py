@@ -27,7 +27,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from gsmsdr_ns._cpp_ext import CppExtension
-from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels, pixel_kernel_size
+from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels, apply_pixel_kernels, pixel_kernel_size
 
 __all__ = [
     "GridKernels",
@@ -143,12 +143,15 @@ def apply_grid_kernels(
         image: [B, C, H, W] floating-point image.
         grid: [B, K*K, ceil(H / factor), ceil(W / factor)] kernels on the coarse grid (odd K), same dtype and
             device; used as given (softmax them beforehand for normalised kernels).
-        factor: grid cell size in pixels (1: ``apply_pixel_kernels``).
+        factor: grid cell size in pixels (1: ``apply_pixel_kernels``; a grid of one cell is one kernel for the whole
+            image: ``apply_image_kernels``).
         backend: "cpp" (CPU float32/float64), "torch" (resample, then ``apply_pixel_kernels``) or "auto".
     Returns:
         [B, C, H, W]; differentiable in ``image`` and ``grid`` (first order).
     """
     K = _check(image, grid, factor)
+    if grid.shape[-2:] == (1, 1):  # a grid of one cell: one kernel for the whole image
+        return apply_image_kernels(image, grid[:, :, 0, 0])
     if factor == 1:
         return apply_pixel_kernels(image, grid)
     chosen = EXTENSION.backend_for(
