@@ -18,7 +18,16 @@ from gsmsdr_ns.blur.degradation_model import DegradationModel
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.blur.hpko import HPKOScheduler, ScaleInfo, kernel_prior_logits, kernel_upsample_matrix
 from gsmsdr_ns.blur.losses import DegradationAux, degradation_losses, mask_regulariser
-from gsmsdr_ns.blur.maan import GAKA, MCA, SAFM, BAGSFeatures, RGBDFeatures, normalize_depth, positional_encoding_2d
+from gsmsdr_ns.blur.maan import (
+    GAKA,
+    MCA,
+    SAFM,
+    BAGSFeatures,
+    DepthwiseConv2d,
+    RGBDFeatures,
+    normalize_depth,
+    positional_encoding_2d,
+)
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, effective_factor
 from gsmsdr_ns.ops.grid_kernels import GridKernels
 from gsmsdr_ns.ops.mixres import resolution_loss
@@ -306,6 +315,23 @@ def test_kernel_centre_regulariser():
 
 
 # ------------------------------------------------------------------------------------------------ pure helpers
+
+
+@pytest.mark.parametrize("kernel,dilation", [(5, 1), (7, 3)])
+def test_depthwise_conv_matches_a_grouped_conv_in_values_and_gradients(kernel, dilation):
+    torch.manual_seed(0)
+    conv = DepthwiseConv2d(6, kernel, dilation).double()
+    x = torch.randn(2, 6, 19, 23, dtype=torch.float64, requires_grad=True)
+    y = conv(x)
+    assert y.shape == x.shape and y.is_contiguous()
+    pad = (kernel // 2) * dilation
+    reference = F.conv2d(x, conv.weight, conv.bias, padding=pad, dilation=dilation, groups=6)
+    torch.testing.assert_close(y, reference)
+    g = torch.randn_like(y)
+    got = torch.autograd.grad(y, (x, conv.weight, conv.bias), g)
+    want = torch.autograd.grad(reference, (x, conv.weight, conv.bias), g)
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b)
 
 
 def test_positional_encoding_and_depth_normalisation():

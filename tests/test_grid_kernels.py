@@ -20,8 +20,10 @@ from gsmsdr_ns.ops.pixel_kernels import apply_pixel_kernels_unfold
 needs_cpp = pytest.mark.skipif(not grid_kernels_cpp_available(), reason="no C++ compiler for the grid-kernel op")
 
 # (H, W, factor, K): factors that divide the image and factors that leave a partial last cell, one-row images, and a
-# grid of one cell (one kernel for the whole image, mode "view")
-CASES = [(13, 17, 4, 5), (12, 16, 2, 3), (7, 9, 3, 5), (1, 5, 2, 3), (6, 6, 2, 1), (9, 4, 5, 3), (5, 7, 8, 5)]
+# grid of one cell (one kernel for the whole image, mode "view"), and kernels spanning several grid rows (the C++
+# op keeps the resampled grid rows a window of pixel rows reads)
+CASES = [(13, 17, 4, 5), (12, 16, 2, 3), (7, 9, 3, 5), (1, 5, 2, 3), (6, 6, 2, 1), (9, 4, 5, 3), (5, 7, 8, 5),
+         (37, 29, 3, 9)]  # fmt: skip
 
 
 def reference(image: torch.Tensor, grid: torch.Tensor, factor: int) -> torch.Tensor:

@@ -23,6 +23,7 @@ from torch import Tensor, nn
 
 __all__ = [
     "ChannelLayerNorm",
+    "DepthwiseConv2d",
     "LKA",
     "DWSeparableConv",
     "GAKA",
@@ -107,6 +108,25 @@ class ChannelLayerNorm(nn.Module):
         return x * self.weight[:, None, None] + self.bias[:, None, None]
 
 
+class DepthwiseConv2d(nn.Conv2d):
+    """Depthwise ``kernel`` x ``kernel`` conv (one filter per channel, size-preserving padding). [B, C, H, W] ->
+    [B, C, H, W], the parameters and values of ``nn.Conv2d(C, C, kernel, groups=C, ...)``.
+
+    On the CPU it runs on a channels-last copy of its input: oneDNN's depthwise kernels there are 2-2.5x faster
+    forward + backward than the default layout's, whose backward is about 5x its forward (7x7 over 16 channels at
+    84x115). The result is returned in the default layout.
+    """
+
+    def __init__(self, channels: int, kernel: int, dilation: int = 1) -> None:
+        pad = (kernel // 2) * dilation
+        super().__init__(channels, channels, kernel, padding=pad, dilation=dilation, groups=channels)
+
+    def forward(self, x: Tensor) -> Tensor:
+        if x.device.type != "cpu":
+            return super().forward(x)
+        return super().forward(x.contiguous(memory_format=torch.channels_last)).contiguous()
+
+
 class LKA(nn.Module):
     """Large-kernel attention (paper eq. 6): ``x * PW(DWD(DW(x)))``.
 
@@ -117,9 +137,8 @@ class LKA(nn.Module):
 
     def __init__(self, channels: int, kernel: int, dilated_kernel: int, dilation: int) -> None:
         super().__init__()
-        self.dw = nn.Conv2d(channels, channels, kernel, padding=kernel // 2, groups=channels)
-        pad = (dilated_kernel // 2) * dilation
-        self.dwd = nn.Conv2d(channels, channels, dilated_kernel, padding=pad, dilation=dilation, groups=channels)
+        self.dw = DepthwiseConv2d(channels, kernel)
+        self.dwd = DepthwiseConv2d(channels, dilated_kernel, dilation)
         self.pw = nn.Conv2d(channels, channels, 1)
 
     def forward(self, x: Tensor) -> Tensor:
@@ -139,7 +158,7 @@ class DWSeparableConv(nn.Module):
 
     def __init__(self, channels: int, kernel: int, out_channels: Optional[int] = None) -> None:
         super().__init__()
-        self.dw = nn.Conv2d(channels, channels, kernel, padding=kernel // 2, groups=channels)
+        self.dw = DepthwiseConv2d(channels, kernel)
         self.pw = nn.Conv2d(channels, out_channels or channels, 1)
 
     def forward(self, x: Tensor) -> Tensor:

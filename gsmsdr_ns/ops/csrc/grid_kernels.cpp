@@ -9,18 +9,20 @@
 // mode="bilinear", align_corners=False) does), and the output is
 //   out[b, c, y, x] = sum_k w[k](y, x) * image[b, c, clamp(y + i - p), clamp(x + j - p)]
 // with k = i * K + j, p = K / 2, as in pixel_kernels.cpp. The full-resolution
-// [B, K*K, H, W] weights are never stored: each row of them is rebuilt from
-// two grid rows when it is needed.
+// [B, K*K, H, W] weights are never stored: each row of them is interpolated
+// from two grid rows resampled to the pixel columns (ResampledRows) when it is
+// needed.
 //
 // Parallel loops (one OpenMP region per call, each output row owned by one
 // iteration, so results do not depend on the thread schedule):
 //   forward      : iteration (b, y)  writes out[b, :, y, :]
 //   grad_image   : iteration (b, ys) gathers every (y, i) whose clamped source
 //                  row is ys and writes grad_image[b, :, ys, :]
-//   grad_grid    : iteration (b, y) reduces pixel row y's tap gradients over
-//                  the columns into its own [K*K, w] block; then iteration
-//                  (b, gy) sums the blocks of the rows whose stencil reads
-//                  grid row gy into grad_grid[b, :, gy, :]
+//   grad_grid    : iteration (b, gy) reduces the tap gradients of the pixel
+//                  rows whose stencil starts at grid row gy into its own two
+//                  [K*K, w] blocks (for grid rows gy and gy + 1); then
+//                  iteration (b, gy) adds the two blocks of grid row gy into
+//                  grad_grid[b, :, gy, :]
 
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
@@ -95,29 +97,61 @@ template <typename S> struct Columns {
     }
 };
 
-// dst[x] = bilinear weight of kernel tap k at pixel row y (stencil sy), for x in [0, W)
-template <typename S>
-inline void weight_row(S *__restrict__ dst, S *__restrict__ mix, const S *grid_k, const Stencil &sy,
-                       const Columns<S> &cols, const Dims &s) {
-    const S ty = static_cast<S>(sy.t);
-    const S *a = grid_k + sy.lo * s.w;
-    const S *b = grid_k + sy.hi * s.w;
-    for (int64_t gx = 0; gx < s.w; ++gx) mix[gx] = a[gx] + ty * (b[gx] - a[gx]);
-    for (int64_t x = 0; x < s.W; ++x) {
-        const S l = mix[cols.lo[x]];
-        dst[x] = l + cols.t[x] * (mix[cols.hi[x]] - l);
+// Grid rows resampled to the pixel columns, built when a thread first needs them and kept for the rows after:
+// row(b, gy)[k * W + x] = tap k of grid row gy, linearly interpolated to pixel column x. Direct-mapped on gy modulo
+// the slot count, so that the grid rows a run of consecutive pixel rows reads stay cached (each grid row is then
+// resampled about once per thread, instead of once per pixel row that reads it).
+template <typename S> struct ResampledRows {
+    ResampledRows(const Dims &s, const Columns<S> &cols, int64_t slots)
+        : s(s), cols(cols), slots(slots), tag(slots, -1), data(slots * s.K * s.K * s.W) {}
+
+    const S *row(const S *grid, int64_t b, int64_t gy) {
+        const int64_t slot = gy % slots;
+        S *dst = data.data() + slot * s.K * s.K * s.W;
+        if (tag[slot] != b * s.h + gy) {
+            const S *src = grid + b * s.K * s.K * s.hw + gy * s.w;
+            for (int64_t k = 0; k < s.K * s.K; ++k, src += s.hw, dst += s.W) {
+                for (int64_t x = 0; x < s.W; ++x) {
+                    const S l = src[cols.lo[x]];
+                    dst[x] = l + cols.t[x] * (src[cols.hi[x]] - l);
+                }
+            }
+            tag[slot] = b * s.h + gy;
+            dst = data.data() + slot * s.K * s.K * s.W;
+        }
+        return dst;
     }
+
+  private:
+    const Dims &s;
+    const Columns<S> &cols;
+    const int64_t slots;
+    std::vector<int64_t> tag;
+    std::vector<S> data;
+};
+
+// Slots that keep every grid row read by K consecutive pixel rows (grad_image's window), plus the two rows of the
+// stencil's interpolation.
+inline int64_t window_slots(const Dims &s) { return (s.K + s.r - 1) / s.r + 3; }
+
+// dst[x] = the bilinear weight of the tap whose resampled grid rows are a (stencil lo) and b (hi), at pixel row
+// stencil weight ty
+template <typename S>
+inline void weight_row(S *__restrict__ dst, const S *__restrict__ a, const S *__restrict__ b, S ty, int64_t W) {
+    for (int64_t x = 0; x < W; ++x) dst[x] = a[x] + ty * (b[x] - a[x]);
 }
 
 template <typename S>
 void forward_rows(const S *img, const S *grid, S *out, const Dims &s, int64_t begin, int64_t end) {
     const Columns<S> cols(s);
-    std::vector<S> wrow(s.W), mix(s.w);
+    ResampledRows<S> rows(s, cols, 2);
+    std::vector<S> wrow(s.W);
     for (int64_t row = begin; row < end; ++row) {
         const int64_t b = row / s.H, y = row % s.H;
         const Stencil sy = stencil(y, s.r, s.h);
+        const S ty = static_cast<S>(sy.t);
+        const S *lo_rows = rows.row(grid, b, sy.lo), *hi_rows = rows.row(grid, b, sy.hi);
         const S *img_b = img + b * s.C * s.HW;
-        const S *grid_b = grid + b * s.K * s.K * s.hw;
         S *out_row = out + b * s.C * s.HW + y * s.W;
         for (int64_t c = 0; c < s.C; ++c) std::fill(out_row + c * s.HW, out_row + c * s.HW + s.W, S(0));
         for (int64_t i = 0; i < s.K; ++i) {
@@ -126,7 +160,8 @@ void forward_rows(const S *img, const S *grid, S *out, const Dims &s, int64_t be
                 const int64_t d = j - s.p;
                 int64_t lo, hi;
                 interior(s.W, d, lo, hi);
-                weight_row(wrow.data(), mix.data(), grid_b + (i * s.K + j) * s.hw, sy, cols, s);
+                const int64_t k = (i * s.K + j) * s.W;
+                weight_row(wrow.data(), lo_rows + k, hi_rows + k, ty, s.W);
                 for (int64_t c = 0; c < s.C; ++c)
                     shifted_fma(out_row + c * s.HW, wrow.data(), img_b + c * s.HW + ys * s.W, s.W, d, lo, hi);
             }
@@ -137,10 +172,10 @@ void forward_rows(const S *img, const S *grid, S *out, const Dims &s, int64_t be
 template <typename S>
 void grad_image_rows(const S *grid, const S *g, S *gi, const Dims &s, int64_t begin, int64_t end) {
     const Columns<S> cols(s);
-    std::vector<S> wrow(s.W), mix(s.w);
+    ResampledRows<S> rows(s, cols, window_slots(s));
+    std::vector<S> wrow(s.W);
     for (int64_t row = begin; row < end; ++row) {
         const int64_t b = row / s.H, ys = row % s.H;
-        const S *grid_b = grid + b * s.K * s.K * s.hw;
         const S *g_b = g + b * s.C * s.HW;
         S *gi_row = gi + b * s.C * s.HW + ys * s.W;
         for (int64_t c = 0; c < s.C; ++c) std::fill(gi_row + c * s.HW, gi_row + c * s.HW + s.W, S(0));
@@ -150,11 +185,14 @@ void grad_image_rows(const S *grid, const S *g, S *gi, const Dims &s, int64_t be
             const int64_t y_hi = std::min<int64_t>(ys == s.H - 1 ? s.H - 1 : ys - i + s.p, s.H - 1);
             for (int64_t y = y_lo; y <= y_hi; ++y) {
                 const Stencil sy = stencil(y, s.r, s.h);
+                const S ty = static_cast<S>(sy.t);
+                const S *lo_rows = rows.row(grid, b, sy.lo), *hi_rows = rows.row(grid, b, sy.hi);
                 for (int64_t j = 0; j < s.K; ++j) {
                     const int64_t d = j - s.p;
                     int64_t lo, hi;
                     interior(s.W, d, lo, hi);
-                    weight_row(wrow.data(), mix.data(), grid_b + (i * s.K + j) * s.hw, sy, cols, s);
+                    const int64_t k = (i * s.K + j) * s.W;
+                    weight_row(wrow.data(), lo_rows + k, hi_rows + k, ty, s.W);
                     for (int64_t c = 0; c < s.C; ++c)
                         shifted_fma_adjoint(gi_row + c * s.HW, wrow.data(), g_b + c * s.HW + y * s.W, s.W, d, lo, hi);
                 }
@@ -163,64 +201,84 @@ void grad_image_rows(const S *grid, const S *g, S *gi, const Dims &s, int64_t be
     }
 }
 
-// Pass 1 of grad_grid, iteration (b, y): cols[b, y, k, :] = the column-interpolation adjoint of the gradient of
-// pixel row y's tap k, sum_c g[c, y, x] * image[c, clamp(y + i - p), clamp(x + j - p)].
+// The column interpolation's adjoint of one full-width row: dst[gx] = sum of src[x] over the columns x whose
+// stencil reads grid column gx, times that stencil weight (runs, not a scatter: no store waits for the previous one).
 template <typename S>
-void grad_columns_rows(const S *img, const S *g, S *colsum, const Dims &s, int64_t begin, int64_t end) {
+inline void column_adjoint(S *__restrict__ dst, const S *__restrict__ src, const Columns<S> &cols, int64_t w) {
+    for (int64_t gx = 0; gx < w; ++gx) {
+        S acc = 0;
+        for (int64_t x = cols.lo_begin[gx]; x < cols.lo_end[gx]; ++x) acc += cols.one_minus_t[x] * src[x];
+        for (int64_t x = cols.hi_begin[gx]; x < cols.hi_end[gx]; ++x) acc += cols.t[x] * src[x];
+        dst[gx] = acc;
+    }
+}
+
+// Pass 1 of grad_grid, iteration (b, gy): the pixel rows y whose row stencil starts at grid row gy (the band
+// [band_begin[gy], band_end[gy])) reduce their tap gradients sum_c g[c, y, x] * image[c, clamp(y + i - p),
+// clamp(x + j - p)] into two full-width accumulators, one for grid row gy (weight 1 - t) and one for gy + 1 (t);
+// each is then column-interpolation-adjointed once: part[b, gy, 0] (to grid row gy) and part[b, gy, 1] (to gy + 1),
+// both [K*K, w].
+template <typename S>
+void grad_band_rows(const S *img, const S *g, S *part, const std::vector<int64_t> &band_begin,
+                    const std::vector<int64_t> &band_end, const Dims &s, int64_t begin, int64_t end) {
     const Columns<S> cols(s);
-    std::vector<S> prod(s.W);
+    const int64_t KK = s.K * s.K;
+    std::vector<S> acc(2 * KK * s.W), prod(s.W);
     for (int64_t row = begin; row < end; ++row) {
-        const int64_t b = row / s.H, y = row % s.H;
+        const int64_t b = row / s.h, gy = row % s.h;
         const S *img_b = img + b * s.C * s.HW;
-        const S *g_row = g + b * s.C * s.HW + y * s.W;
-        S *out = colsum + row * s.K * s.K * s.w;
-        for (int64_t i = 0; i < s.K; ++i) {
-            const int64_t ys = clamp_row(y + i - s.p, s.H);
-            for (int64_t j = 0; j < s.K; ++j) {
-                const int64_t d = j - s.p;
-                int64_t lo, hi;
-                interior(s.W, d, lo, hi);
-                std::fill(prod.begin(), prod.end(), S(0));
-                for (int64_t c = 0; c < s.C; ++c)
-                    shifted_fma(prod.data(), g_row + c * s.HW, img_b + c * s.HW + ys * s.W, s.W, d, lo, hi);
-                // the column interpolation's adjoint, one grid column at a time (runs, not a scatter: no store
-                // waits for the previous one)
-                S *dst = out + (i * s.K + j) * s.w;
-                for (int64_t gx = 0; gx < s.w; ++gx) {
-                    S acc = 0;
-                    for (int64_t x = cols.lo_begin[gx]; x < cols.lo_end[gx]; ++x) acc += cols.one_minus_t[x] * prod[x];
-                    for (int64_t x = cols.hi_begin[gx]; x < cols.hi_end[gx]; ++x) acc += cols.t[x] * prod[x];
-                    dst[gx] = acc;
+        std::fill(acc.begin(), acc.end(), S(0));
+        for (int64_t y = band_begin[gy]; y < band_end[gy]; ++y) {
+            const Stencil sy = stencil(y, s.r, s.h);
+            const S w_hi = sy.hi == sy.lo ? S(0) : static_cast<S>(sy.t);
+            const S w_lo = S(1) - w_hi;
+            const S *g_row = g + b * s.C * s.HW + y * s.W;
+            for (int64_t i = 0; i < s.K; ++i) {
+                const int64_t ys = clamp_row(y + i - s.p, s.H);
+                for (int64_t j = 0; j < s.K; ++j) {
+                    const int64_t d = j - s.p;
+                    int64_t lo, hi;
+                    interior(s.W, d, lo, hi);
+                    std::fill(prod.begin(), prod.end(), S(0));
+                    for (int64_t c = 0; c < s.C; ++c)
+                        shifted_fma(prod.data(), g_row + c * s.HW, img_b + c * s.HW + ys * s.W, s.W, d, lo, hi);
+                    S *acc_lo = acc.data() + (i * s.K + j) * s.W;
+                    S *acc_hi = acc_lo + KK * s.W;
+                    for (int64_t x = 0; x < s.W; ++x) {
+                        acc_lo[x] += w_lo * prod[x];
+                        acc_hi[x] += w_hi * prod[x];
+                    }
                 }
             }
+        }
+        S *out = part + row * 2 * KK * s.w;
+        for (int64_t k = 0; k < 2 * KK; ++k) column_adjoint(out + k * s.w, acc.data() + k * s.W, cols, s.w);
+    }
+}
+
+// Pass 2 of grad_grid, iteration (b, gy): grad_grid[b, :, gy, :] = part[b, gy, 0] + part[b, gy - 1, 1].
+template <typename S> void grad_grid_rows(const S *part, S *gg, const Dims &s, int64_t begin, int64_t end) {
+    const int64_t KK = s.K * s.K;
+    for (int64_t row = begin; row < end; ++row) {
+        const int64_t b = row / s.h, gy = row % s.h;
+        const S *own = part + row * 2 * KK * s.w;
+        const S *above = gy > 0 ? part + ((row - 1) * 2 + 1) * KK * s.w : nullptr;
+        S *gg_b = gg + b * KK * s.hw + gy * s.w;
+        for (int64_t k = 0; k < KK; ++k) {
+            S *dst = gg_b + k * s.hw;
+            for (int64_t gx = 0; gx < s.w; ++gx) dst[gx] = own[k * s.w + gx] + (above ? above[k * s.w + gx] : S(0));
         }
     }
 }
 
-// Pass 2 of grad_grid, iteration (b, gy): grad_grid[b, :, gy, :] = sum over the pixel rows y whose row stencil reads
-// grid row gy of its weight times cols[b, y].
-template <typename S>
-void grad_grid_rows(const S *colsum, S *gg, const Dims &s, int64_t begin, int64_t end) {
-    const int64_t KK = s.K * s.K;
-    for (int64_t row = begin; row < end; ++row) {
-        const int64_t b = row / s.h, gy = row % s.h;
-        S *gg_b = gg + b * KK * s.hw + gy * s.w;
-        for (int64_t k = 0; k < KK; ++k) std::fill(gg_b + k * s.hw, gg_b + k * s.hw + s.w, S(0));
-        const int64_t y_first = std::max<int64_t>((gy - 2) * s.r, 0);
-        const int64_t y_last = std::min<int64_t>((gy + 3) * s.r, s.H - 1);
-        for (int64_t y = y_first; y <= y_last; ++y) {
-            const Stencil sy = stencil(y, s.r, s.h);
-            S weight = 0;
-            if (sy.lo == gy) weight += static_cast<S>(1.0 - sy.t);
-            if (sy.hi == gy) weight += static_cast<S>(sy.t);
-            if (sy.lo != gy && sy.hi != gy) continue;
-            const S *src = colsum + (b * s.H + y) * KK * s.w;
-            for (int64_t k = 0; k < KK; ++k) {
-                S *dst = gg_b + k * s.hw;
-                const S *sk = src + k * s.w;
-                for (int64_t gx = 0; gx < s.w; ++gx) dst[gx] += weight * sk[gx];
-            }
-        }
+// Pixel rows [band_begin[gy], band_end[gy]) have row stencils starting at grid row gy (lo is non-decreasing in y).
+void row_bands(const Dims &s, std::vector<int64_t> &band_begin, std::vector<int64_t> &band_end) {
+    band_begin.assign(s.h, 0);
+    band_end.assign(s.h, 0);
+    for (int64_t y = 0; y < s.H; ++y) {
+        const int64_t lo = stencil(y, s.r, s.h).lo;
+        if (y == 0 || lo != stencil(y - 1, s.r, s.h).lo) band_begin[lo] = y;
+        band_end[lo] = y + 1;
     }
 }
 
@@ -271,15 +329,17 @@ std::tuple<std::optional<Tensor>, std::optional<Tensor>> grid_kernels_bwd(
         const scalar_t *g = grad_out.const_data_ptr<scalar_t>();
         if (need_grid) {
             scalar_t *gg = grad_grid.mutable_data_ptr<scalar_t>();
-            // [B, H, K*K, w]: every pixel row's tap gradients, already reduced over the columns (H / h times the
-            // grid's size, far smaller than the [B, K*K, H, W] weights)
-            Tensor colsum = at::empty({s.B, s.H, s.K * s.K, s.w}, grid.options());
-            scalar_t *cs = colsum.mutable_data_ptr<scalar_t>();
-            at::parallel_for(0, s.B * s.H, 1, [&](int64_t begin, int64_t end) {
-                grad_columns_rows<scalar_t>(img, g, cs, s, begin, end);
+            // [B, h, 2, K*K, w]: each row band's tap gradients for its two grid rows (twice the grid's size, far
+            // smaller than the [B, K*K, H, W] weights)
+            Tensor part = at::empty({s.B, s.h, 2, s.K * s.K, s.w}, grid.options());
+            scalar_t *pt = part.mutable_data_ptr<scalar_t>();
+            std::vector<int64_t> band_begin, band_end;
+            row_bands(s, band_begin, band_end);
+            at::parallel_for(0, s.B * s.h, 1, [&](int64_t begin, int64_t end) {
+                grad_band_rows<scalar_t>(img, g, pt, band_begin, band_end, s, begin, end);
             });
             at::parallel_for(0, s.B * s.h, 1, [&](int64_t begin, int64_t end) {
-                grad_grid_rows<scalar_t>(cs, gg, s, begin, end);
+                grad_grid_rows<scalar_t>(pt, gg, s, begin, end);
             });
         }
         if (need_image) {
