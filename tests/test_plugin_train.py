@@ -49,6 +49,17 @@ def test_training_reduces_the_loss(trained_run):
     assert last < 0.8 * first, losses
 
 
+def test_ns_train_logs_the_schedule_aware_time_estimate(trained_run):
+    """The "ETA (time)" scalar is GSMSDRTrainer's estimate (plugin/time_estimate.py), not nerfstudio's (the steps
+    left times the logged mean step time) at the logged steps, and falls as the run goes on."""
+    eta = scalars(trained_run, "ETA (time)")
+    iter_time = dict(scalars(trained_run, "Train Iter (time)"))
+    assert len(eta) >= 10 and all(math.isfinite(v) and v >= 0 for _, v in eta), eta
+    nerfstudio = {step: (trained_run.steps - step) * iter_time[step] for step, _ in eta if step in iter_time}
+    assert sum(1 for step, v in eta if step in nerfstudio and v != pytest.approx(nerfstudio[step])) >= len(eta) // 2
+    assert eta[-1][1] < eta[1][1]
+
+
 def test_training_densifies_and_prunes(trained_run):
     """gsplat's DefaultStrategy logs each refinement; both growth and pruning must have happened."""
     grown = [int(a) + int(b) for a, b in re.findall(r"(\d+) GSs duplicated, (\d+) GSs split", trained_run.log)]

@@ -308,6 +308,26 @@ class SfmBench:
         print(f"wrote {write_results(self.out, rows, f'{Path(self.dataset).name}/{self.images}', command)}")
 
 
+@dataclass
+class EtaBench:
+    """How right ns-train's time estimate is: replayed on the step times a suite's runs recorded, at 10 / 25 / 50 /
+    75 % of each run, beside nerfstudio's own estimate."""
+
+    runs: Path
+    """A suite's output folder (or its runs/ folder); records without a step trace are skipped."""
+
+    def main(self) -> None:
+        from gsmsdr_ns.bench.eta import format_table, load_traced_records, replay
+
+        try:
+            records = load_traced_records(self.runs)
+        except FileNotFoundError as e:
+            raise SystemExit(f"gsmsdr-bench eta: {e}") from None
+        if not records:
+            raise SystemExit(f"gsmsdr-bench eta: no run record with a step trace under {self.runs}")
+        print(format_table([replay(record) for record in records]))
+
+
 SUBCOMMANDS = {
     "raster": RasterBench,
     "degrade": DegradeBench,
@@ -316,6 +336,7 @@ SUBCOMMANDS = {
     "suite": SuiteBench,
     "sfm": SfmBench,
     "step": StepBench,
+    "eta": EtaBench,
 }
 
 _ARGS: List[str] = []

@@ -8,7 +8,9 @@ field / kernel application / densification / data / other
 In the output folder:
 
 * ``runs/<scene>__<method>__<steps>__s<seed>.json``: one record per finished run, written atomically when the run
-  ends; ``runs/<same>.log``: what the run printed. A rerun of the suite skips every run whose record exists and
+  ends (with every step's training time and Gaussian count, ``step_trace``, and the schedule ``ns-train``'s time
+  estimate would know, ``step_schedule``: ``gsmsdr-bench eta`` replays the estimate on them); ``runs/<same>.log``:
+  what the run printed. A rerun of the suite skips every run whose record exists and
   matches the run's settings (:func:`fingerprint`), so an interrupted suite resumes where it stopped (the run that
   was interrupted starts over). A run on estimated records whose fingerprint changed only because the estimate did
   (its version, config or fitted ensembles) keeps its record when the records it trains on are the same as they
@@ -20,6 +22,7 @@ In the output folder:
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime
 import signal
 import sys
@@ -76,14 +79,18 @@ def train_and_record(
     device = str(run.trainer.device)
     recorder = TimingRecorder(sync_cuda=device.startswith("cuda")).attach(run.pipeline)
     curve: List[Dict[str, Any]] = []
+    trace: Dict[str, List[Any]] = {"seconds": [], "gaussians": []}
     eval_seconds = 0.0
     try:
         eval_steps = suite.eval_steps(key.steps)
         alignment = PoseAlignmentConfig() if suite.align_poses else None
         for target in eval_steps:
             while run.step < target:
+                before = recorder.wall
                 with recorder.measure():
                     run.train(1)
+                trace["seconds"].append(round(recorder.wall - before, 5))
+                trace["gaussians"].append(int(run.model.num_points))
                 if on_step is not None:
                     on_step(1)
             t0 = time.perf_counter()
@@ -123,6 +130,8 @@ def train_and_record(
             "breakdown_split": recorder.split(),
             "blur_field_modules": _active_modules(run.model),
             "curve": curve,
+            "step_trace": trace,
+            "step_schedule": dataclasses.asdict(_step_schedule(run, key.steps)),
             "machine": machine_info(),
             "finished": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         }
@@ -132,6 +141,15 @@ def train_and_record(
         if torch.cuda.is_available():
             torch.cuda.empty_cache()
     return record
+
+
+def _step_schedule(run, steps: int):
+    """The run's :class:`gsmsdr_ns.plugin.time_estimate.StepSchedule` (what ``ns-train``'s time estimate knows)."""
+    from gsmsdr_ns.plugin.time_estimate import step_schedule_of
+
+    cameras = run.pipeline.datamanager.train_dataparser_outputs.cameras
+    sizes = list(zip(cameras.width.view(-1).tolist(), cameras.height.view(-1).tolist()))
+    return step_schedule_of(run.model, sizes, steps)
 
 
 def _active_modules(model) -> str:

@@ -19,11 +19,13 @@ from __future__ import annotations
 
 import re
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional, Type
 
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils import writer
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
 
@@ -36,6 +38,7 @@ from gsmsdr_ns.plugin.checkpoint_io import (
     load_checkpoint_file,
     save_checkpoint_atomic,
 )
+from gsmsdr_ns.plugin.time_estimate import TimeEstimate, format_duration, step_schedule_of
 
 STEP_OPTIONS = ("max_num_iterations", "steps_per_save", "steps_per_log")
 """Trainer step counts that must be >= 1 (0 ends nerfstudio's loop in a KeyError or divides by zero)."""
@@ -70,6 +73,16 @@ def trained_method(checkpoint: Path) -> Optional[str]:
     return match.group(1) if match else None
 
 
+def replace_eta(step: int, seconds: float) -> None:
+    """Make ``seconds`` the ETA nerfstudio's writers show for ``step`` (the console table and the logged scalar)."""
+    name = writer.EventName.ETA.value
+    writer.GLOBAL_BUFFER.setdefault("events", {})[name] = format_duration(seconds)
+    for event in reversed(writer.EVENT_STORAGE[-8:]):
+        if event["name"] == name and event["step"] == step:
+            event["event"] = seconds
+            break
+
+
 class GSMSDRTrainer(Trainer):
     """nerfstudio's Trainer; checkpoints are written atomically and loaded with errors that name the file, and
     Ctrl-C ends ``ns-train`` with one line and exit status 130 (nerfstudio's launcher prints a traceback and exits 0,
@@ -89,6 +102,8 @@ class GSMSDRTrainer(Trainer):
 
     def train(self) -> None:
         self._training_finished = False
+        self._time_estimate = self._new_time_estimate()
+        self._step_clock = time.perf_counter()
         try:
             super().train()
         except KeyboardInterrupt:
@@ -102,6 +117,29 @@ class GSMSDRTrainer(Trainer):
     def _train_complete_viewer(self) -> None:
         self._training_finished = True
         super()._train_complete_viewer()
+
+    def _new_time_estimate(self) -> Optional[TimeEstimate]:
+        cameras = getattr(self.pipeline.datamanager, "train_dataparser_outputs", None)
+        if cameras is None:
+            return None
+        cameras = cameras.cameras
+        sizes = list(zip(cameras.width.view(-1).tolist(), cameras.height.view(-1).tolist()))
+        last = self._start_step + self.config.max_num_iterations
+        return TimeEstimate(step_schedule_of(self.pipeline.model, sizes, last))
+
+    def _update_viewer_state(self, step: int) -> None:
+        """The viewer's update (nerfstudio's), then the ETA: nerfstudio's (the remaining steps times the mean of the
+        last 20 step times) is replaced by :class:`TimeEstimate`'s, which follows the resolution schedule and the
+        Gaussians' growth and counts everything a loop iteration costs (viewer, evaluations, checkpoints)."""
+        super()._update_viewer_state(step)
+        now = time.perf_counter()
+        seconds, self._step_clock = now - self._step_clock, now
+        if self._time_estimate is None:
+            return
+        self._time_estimate.add(step, seconds, int(getattr(self.pipeline.model, "num_points", 0)))
+        remaining = self._time_estimate.remaining()
+        if remaining is not None:
+            replace_eta(step, remaining)
 
     @check_main_thread
     def save_checkpoint(self, step: int) -> None:
