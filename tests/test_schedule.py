@@ -8,8 +8,14 @@ from pathlib import Path
 
 import pytest
 
+from gsmsdr_ns.bench.methods import method_spec
 from gsmsdr_ns.demo import demo_trainer_config
-from gsmsdr_ns.plugin.method_config import LITE_MAX_STEPS, gsmsdr_lite_trainer_config, gsmsdr_trainer_config
+from gsmsdr_ns.plugin.method_config import (
+    LITE_MAX_STEPS,
+    gsmsdr_cpu_trainer_config,
+    gsmsdr_lite_trainer_config,
+    gsmsdr_trainer_config,
+)
 from gsmsdr_ns.plugin.schedule import TrainingSchedule
 
 
@@ -49,6 +55,26 @@ def test_demo_preset_values(tmp_path: Path) -> None:
         bilateral_grid_lr=(LITE_MAX_STEPS, 1000),
     )  # fmt: skip
     assert config.machine.device_type == "cpu" and config.experiment_name == "demo"
+
+
+def test_cpu_preset_is_mode_view_on_the_real_size_suites_schedule(tmp_path: Path) -> None:
+    """gsmsdr-cpu = the gsmsdr preset with one kernel per view, trained on the real-size suite's schedule; so the
+    suite's `gsmsdr-cpu` and `view` rows train the same model (the suite's schedule replaces the preset's own)."""
+    from gsmsdr_ns.bench.suite_config import find_suite_file, load_suite
+
+    config = gsmsdr_cpu_trainer_config()
+    assert config.method_name == "gsmsdr-cpu" and config.pipeline.model.blur_field.mode == "view"
+    expected = gsmsdr_trainer_config()
+    expected.pipeline.model.blur_field = config.pipeline.model.blur_field
+    suite = load_suite(find_suite_file("real-size"))
+    suite.schedule_for(3000).apply(expected)
+    assert _settings(config) == _settings(expected)
+    assert repr(config.pipeline.model) == repr(expected.pipeline.model)
+    as_bench = method_spec("gsmsdr-cpu").make_config(tmp_path, tmp_path / "out")
+    suite.schedule_for(3000).apply(as_bench)
+    view = method_spec("view").make_config(tmp_path, tmp_path / "out")
+    suite.schedule_for(3000).apply(view)
+    assert repr(as_bench.pipeline.model) == repr(view.pipeline.model)
 
 
 @pytest.mark.parametrize("steps", [2, 7, 100, 999, 1000, 1500, 3001, 7000])

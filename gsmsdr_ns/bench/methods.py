@@ -5,7 +5,7 @@ Every method is a preset of ``gsmsdr_ns.plugin.method_config`` (its *base*) with
 
 * base ``plain``: the ``gsmsdr`` preset with ``degradation sharp``, i.e. plain splatfacto Gaussians fitted straight
   to the degraded training images (no blur field, no resolution model);
-* base ``gsmsdr`` / ``gsmsdr-lite``: those presets, ``degradation auto`` (per image from the scene's
+* base ``gsmsdr`` / ``gsmsdr-lite`` / ``gsmsdr-cpu``: those presets, ``degradation auto`` (per image from the scene's
   ``degradation.json``);
 * base ``sharp``: ``plain`` trained on the *sharp* twin of the same scene (identical cameras and test views): the
   upper bound a perfect deblurring method could reach with the same budget.
@@ -21,18 +21,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple
 
-BASES = ("plain", "gsmsdr", "gsmsdr-lite", "sharp")
+BASES = ("plain", "gsmsdr", "gsmsdr-lite", "gsmsdr-cpu", "sharp")
 """Presets a method starts from (see the module docstring)."""
 
 
 def base_config(base: str, data: Path, output_dir: Path):
     """The TrainerConfig of the preset ``base`` on ``data``: no viewer, no periodic evaluation or image logging,
     CPU unless CUDA is there (schedules not yet shortened)."""
-    from gsmsdr_ns.plugin.method_config import gsmsdr_lite_trainer_config, gsmsdr_trainer_config
+    from gsmsdr_ns.plugin import method_config as presets
 
     if base not in BASES:
         raise ValueError(f"unknown base preset {base!r}; valid: {', '.join(BASES)}")
-    config = gsmsdr_lite_trainer_config() if base == "gsmsdr-lite" else gsmsdr_trainer_config()
+    make = {"gsmsdr-lite": presets.gsmsdr_lite_trainer_config, "gsmsdr-cpu": presets.gsmsdr_cpu_trainer_config}
+    config = make.get(base, presets.gsmsdr_trainer_config)()
     if base in ("plain", "sharp"):
         config.pipeline.model.degradation = "sharp"
         set_pose_refinement(config.pipeline.model, "off")  # splatfacto's default
@@ -97,7 +98,7 @@ class MethodSpec:
 
     @property
     def has_blur_field(self) -> bool:
-        return self.base in ("gsmsdr", "gsmsdr-lite")
+        return self.base in ("gsmsdr", "gsmsdr-lite", "gsmsdr-cpu")
 
     def modules(self) -> Optional[Dict[str, bool]]:
         """Table 6's check marks (GAKA, SAFM, MCA, RGBD, HPKO) of the gsmsdr-preset blur field, None otherwise."""
@@ -256,6 +257,12 @@ METHODS: Dict[str, MethodSpec] = {
         _method("-mca", "-MCA", "gsmsdr", "full without the Multi-modal Context Adapter", mca=False),
         _method("-rgbd", "-RGBD", "gsmsdr", "full with an RGB-only feature network (no depth input)", rgbd=False),
         _method("gsmsdr-lite", "gsmsdr-lite", "gsmsdr-lite", "the gsmsdr-lite preset (half-width blur field)"),
+        _method(
+            "gsmsdr-cpu",
+            "gsmsdr-cpu",
+            "gsmsdr-cpu",
+            "the gsmsdr-cpu preset (mode view, thin lens; the suite's schedule replaces the preset's own)",
+        ),  # fmt: skip
         MethodSpec(
             "sharp-degraded-poses",
             "sharp, degraded photos' poses (bound)",
