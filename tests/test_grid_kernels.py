@@ -119,3 +119,18 @@ def test_field_predicts_on_the_grid_and_blurs_as_its_dense_kernels(factor):
         rtol=1e-5,
         atol=1e-6,
     )
+
+
+def test_feature_grid_cells_cap_the_grid_at_any_render_size():
+    config = BlurFieldConfig(feature_downsample=4, feature_grid_cells=100)
+    assert config.grid_factor((30, 40)) == 4  # 1200 pixels: 8 x 10 cells of 4 px are under the cap
+    assert config.grid_factor((333, 458)) == 40  # ceil(sqrt(152514 / 100))
+    assert BlurFieldConfig(feature_downsample=4).grid_factor((333, 458)) == 4  # no cap: always feature_downsample
+    assert BlurFieldConfig(feature_downsample=1, feature_grid_cells=100).grid_factor((333, 458)) == 1  # per pixel
+    with pytest.raises(ValueError, match="feature_grid_cells"):
+        BlurFieldConfig(feature_grid_cells=-1)
+    field = BlurFieldConfig(kernel_sizes=(5,), feature_downsample=2, feature_grid_cells=30).setup(num_train_views=2)
+    render = torch.rand(1, 3, 22, 29)
+    kernels, mask = field(render, torch.rand(1, 1, 22, 29) + 1.0, torch.tensor([0]), 1, dense=False)
+    assert kernels.factor == 5 and kernels.weights.shape[-2:] == grid_size((22, 29), 5)  # ceil(sqrt(638 / 30))
+    assert mask.shape == (1, 1, 22, 29)

@@ -194,6 +194,13 @@ METHODS: Dict[str, MethodSpec] = {
             feature_downsample=1,
         ),  # fmt: skip
         _method(
+            "full-grid4k",
+            "full, feature grid of at most 4096 cells",
+            "gsmsdr",
+            "full with the feature grid's cells grown on larger renders to keep at most 4096 of them",
+            feature_grid_cells=4096,
+        ),  # fmt: skip
+        _method(
             "full-uncentred",
             "GS-MSDR (full), kernels not centred",
             "gsmsdr",

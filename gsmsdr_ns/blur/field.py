@@ -22,6 +22,7 @@ The ablation switches ``gaka``, ``safm``, ``mca``, ``rgbd``, ``hpko`` (Table 6) 
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any, Dict, List, Literal, NamedTuple, Optional, Tuple, Union
 
@@ -90,6 +91,10 @@ class BlurFieldConfig:
     every pixel, as in the paper); the kernels and masks they predict are resampled bilinearly to every pixel when
     they are applied. Blur varies smoothly across a photo, so the coarse grid predicts nearly the same kernels for
     a fraction of the network's time and memory."""
+    feature_grid_cells: int = 0
+    """With ``feature_downsample`` > 1 and this > 0, larger cells on a render that would have more than this many:
+    the factor becomes ``ceil(sqrt(H * W / feature_grid_cells))``, so the network costs about the same at any photo
+    size (0: always ``feature_downsample``)."""
     kernel_sizes: Tuple[int, ...] = (5, 9, 17)
     """Blur kernel size per HPKO scale, coarse to fine (K_3, K_2, K_1); odd, non-decreasing."""
     gaka: bool = True
@@ -146,6 +151,8 @@ class BlurFieldConfig:
             raise ValueError(f"kernel_prior_sigma must be > 0, got {self.kernel_prior_sigma}")
         if int(self.feature_downsample) != self.feature_downsample or self.feature_downsample < 1:
             raise ValueError(f"feature_downsample must be an integer >= 1, got {self.feature_downsample}")
+        if int(self.feature_grid_cells) != self.feature_grid_cells or self.feature_grid_cells < 0:
+            raise ValueError(f"feature_grid_cells must be an integer >= 0, got {self.feature_grid_cells}")
         if dims.pos_channels < 0 or dims.pos_channels % 4:
             raise ValueError(f"pos_channels must be a non-negative multiple of 4, got {dims.pos_channels}")
 
@@ -176,6 +183,13 @@ class BlurFieldConfig:
             return self
         keep = max(1, min(len(self.kernel_sizes), int(num_downscales) + 1))
         return dataclasses.replace(self, kernel_sizes=tuple(self.kernel_sizes)[-keep:])
+
+    def grid_factor(self, size: Tuple[int, int]) -> int:
+        """The feature grid's cell size (pixels) on a render of ``size`` (H, W)."""
+        factor = int(self.feature_downsample)
+        if factor > 1 and self.feature_grid_cells > 0:
+            factor = max(factor, math.ceil(math.sqrt(size[0] * size[1] / self.feature_grid_cells)))
+        return factor
 
     def setup(self, **kwargs: Any) -> "BlurField":
         """Build the field; kwargs are run-time values (``num_train_views``, optional ``use_depth``)."""
@@ -271,17 +285,17 @@ class BlurField(nn.Module):
     ) -> Tuple[Union[Tensor, GridKernels], Tensor]:
         """Kernels and masks for ``render`` (already at scale ``scale``'s resolution).
 
-        With ``feature_downsample`` r > 1 the feature network runs on the render averaged over r x r cells and the
-        kernels are predicted on that grid; ``dense`` resamples them to every pixel, ``dense=False`` keeps them on
-        the grid (:class:`GridKernels`, which :meth:`blur` applies without a full-resolution copy). The mask is
-        always resampled to the render's pixels.
+        With a grid factor r > 1 (:meth:`BlurFieldConfig.grid_factor`) the feature network runs on the render
+        averaged over r x r cells and the kernels are predicted on that grid; ``dense`` resamples them to every
+        pixel, ``dense=False`` keeps them on the grid (:class:`GridKernels`, which :meth:`blur` applies without a
+        full-resolution copy). The mask is always resampled to the render's pixels.
 
         Returns:
             kernel_weights: [B, K_s * K_s, H, W] (or :class:`GridKernels`), softmax over dim 1 (sums to 1),
                 row-major window index.
             mask: [B, 1, H, W] in (0, 1).
         """
-        factor = int(self.config.feature_downsample)
+        factor = self.config.grid_factor((render.shape[-2], render.shape[-1]))
         if self.mcf is None and not dense:
             return self._predict_per_image(render, view_ids, scale)
         if self.mcf is None or factor == 1:
