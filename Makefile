@@ -2,9 +2,11 @@
 # The stamp file is rebuilt when pyproject.toml changes, so an up-to-date venv costs nothing.
 
 PYTHON ?= python3
-# Idle OpenMP threads sleep instead of spinning: on a 2-core machine shared with another busy process, spinning
-# threads made the blur field's 2-thread backward ~40x slower (measured 7.4 s vs 0.17 s per call at 100x75).
-export OMP_WAIT_POLICY ?= PASSIVE
+# Idle OpenMP threads spin briefly, then sleep: with libgomp's default spin, another busy process on a 2-core machine
+# made the blur field's 2-thread backward ~40x slower (7.4 s vs 0.17 s per call at 100x75); sleeping at once
+# (OMP_WAIT_POLICY=PASSIVE) costs an idle machine a third of the second thread (docs/design.md, CPU and shared
+# machines). A short spin is as good as PASSIVE next to another process and better alone.
+export GOMP_SPINCOUNT ?= 1000
 VENV := .venv
 VENV_PYTHON := $(VENV)/bin/python
 STAMP := $(VENV)/.gsmsdr-installed

@@ -365,8 +365,8 @@ def entrypoint(argv: Optional[Sequence[str]] = None) -> None:
     import os
     import sys
 
-    # Idle OpenMP threads sleep instead of spinning (see the Makefile); must be set before torch loads OpenMP.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    # Idle OpenMP threads spin briefly, then sleep (see the Makefile); must be set before torch loads OpenMP.
+    os.environ.setdefault("GOMP_SPINCOUNT", "1000")
     raw = list(sys.argv[1:] if argv is None else argv)
     _ARGS[:] = raw
     description = "gsmsdr benchmarks. `gsmsdr-bench --quick` runs the quick suite (= `suite --config quick`)."

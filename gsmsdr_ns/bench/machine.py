@@ -53,6 +53,7 @@ def machine_info() -> Dict[str, Any]:
         "python": platform.python_version(),
         "platform": platform.platform(terse=True),
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+        "gomp_spincount": os.environ.get("GOMP_SPINCOUNT"),
     }
     info["git"] = GIT_AT_IMPORT
     return info

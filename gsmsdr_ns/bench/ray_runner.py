@@ -38,7 +38,13 @@ from gsmsdr_ns.bench.suite_config import RunKey, Suite
 
 RAY_MISSING = "--ray needs Ray, an optional extra: pip install 'gsmsdr-ns[ray]'"
 
-PASSED_ENV = ("OMP_WAIT_POLICY", "GSMSDR_DATA_DIR", "TORCH_EXTENSIONS_DIR", "GSMSDR_TEST_TIMEOUT_SCALE")
+PASSED_ENV = (
+    "OMP_WAIT_POLICY",
+    "GOMP_SPINCOUNT",
+    "GSMSDR_DATA_DIR",
+    "TORCH_EXTENSIONS_DIR",
+    "GSMSDR_TEST_TIMEOUT_SCALE",
+)
 """Environment variables of the driver that the workers get too (data and compiled-kernel locations, OpenMP)."""
 
 LOCAL_OBJECT_STORE_BYTES = 512 * 2**20

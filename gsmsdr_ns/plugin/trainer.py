@@ -73,6 +73,11 @@ def trained_method(checkpoint: Path) -> Optional[str]:
     return match.group(1) if match else None
 
 
+PAUSE_CAP = 50
+"""A loop iteration counts at most this many times its training step in the time estimate: longer is a pause in
+the viewer (or a stall), not what the remaining steps will cost."""
+
+
 def replace_eta(step: int, seconds: float) -> None:
     """Make ``seconds`` the ETA nerfstudio's writers show for ``step`` (the console table and the logged scalar)."""
     name = writer.EventName.ETA.value
@@ -130,12 +135,16 @@ class GSMSDRTrainer(Trainer):
     def _update_viewer_state(self, step: int) -> None:
         """The viewer's update (nerfstudio's), then the ETA: nerfstudio's (the remaining steps times the mean of the
         last 20 step times) is replaced by :class:`TimeEstimate`'s, which follows the resolution schedule and the
-        Gaussians' growth and counts everything a loop iteration costs (viewer, evaluations, checkpoints)."""
+        Gaussians' growth and counts what a loop iteration costs besides the step (viewer, evaluations, checkpoints),
+        up to :data:`PAUSE_CAP` times the step itself."""
         super()._update_viewer_state(step)
         now = time.perf_counter()
         seconds, self._step_clock = now - self._step_clock, now
         if self._time_estimate is None:
             return
+        iteration = writer.GLOBAL_BUFFER.get("events", {}).get(writer.EventName.ITER_TRAIN_TIME.value)
+        if iteration and iteration.get("buffer"):  # a pause in the viewer is not training time
+            seconds = min(seconds, PAUSE_CAP * iteration["buffer"][-1])
         self._time_estimate.add(step, seconds, int(getattr(self.pipeline.model, "num_points", 0)))
         remaining = self._time_estimate.remaining()
         if remaining is not None:
