@@ -100,6 +100,7 @@ def format_markdown(
         lines += _paper_tables(suite, agg, steps)
         lines += _time_breakdown(suite, agg, steps)
         lines += _gap_table(suite, agg, records, steps)
+        lines += _equal_time_table(suite, records, steps)
     if failed:
         lines += ["## Failed runs", ""] + [f"- `{k}`: {v} (log: `runs/{k}.log`)" for k, v in failed.items()] + [""]
     if skipped:
@@ -307,6 +308,55 @@ def _gap_table(suite: Suite, agg: _Aggregate, records: Sequence[Mapping[str, Any
     return [f"## Gaps, {steps} steps (test PSNR in dB, SSIM)", "",
             "| scene | method | PSNR: method - plain | SSIM: method - plain | PSNR: sharp - method |" + extra,
             "| --- | --- | ---: | ---: | ---: |" + " ---: |" * (aligned + multi_seed), *rows, ""]  # fmt: skip
+
+
+def _interpolate(points: Sequence[Tuple[float, float]], x: float) -> float:
+    """Piecewise-linear value at ``x`` of ``points`` (x, y) sorted by x; the last y beyond the last x."""
+    if not points:
+        return float("nan")
+    for (x0, y0), (x1, y1) in zip(points, points[1:]):
+        if x <= x1:
+            return y0 + (y1 - y0) * (x - x0) / (x1 - x0) if x1 > x0 else y1
+    return points[-1][1]
+
+
+def _equal_time_table(suite: Suite, records: Sequence[Mapping[str, Any]], steps: int) -> List[str]:
+    """Per scene and method (seed means): training and whole-run minutes, test PSNR, plain Gaussians' PSNR after the
+    same training time (along plain's evaluation curve of the same seed; plain's last value when the method trained
+    longer than plain did) and the PSNR gained over the last quarter of the steps. Only for suites that evaluate
+    along the run (at least 3 points per curve)."""
+    runs = {(r["scene"], r["method"], r["seed"]): r for r in records if r["steps"] == steps}
+    if not any(len(r.get("curve") or []) >= 3 for r in runs.values()):
+        return []
+    rows = []
+    for scene in suite.scenes:
+        for m in suite.methods:
+            mine = [r for (sc, me, _), r in runs.items() if sc == scene.name and me == m and len(r["curve"]) >= 3]
+            if not mine:
+                continue
+            equal, beyond = [], False
+            for r in mine:
+                plain = runs.get((scene.name, "plain", r["seed"]))
+                if plain is not None and len(plain["curve"]) >= 3:
+                    curve = [(c["seconds"], c["psnr"]) for c in plain["curve"]]
+                    equal.append(_interpolate(curve, r["train_seconds"]))
+                    beyond = beyond or r["train_seconds"] > curve[-1][0]
+            last_quarter = [r["psnr"] - _interpolate([(c["step"], c["psnr"]) for c in r["curve"]], 0.75 * steps)
+                            for r in mine]  # fmt: skip
+            whole = _mean([r["train_seconds"] + r.get("eval_seconds", 0.0) + r.get("setup_seconds", 0.0) for r in mine])
+            psnr, plain_then = _mean([r["psnr"] for r in mine]), _mean(equal)
+            mark = " *" if beyond else ""
+            rows.append(f"| {scene.name} | {METHODS[m].label} | {_f(_mean([r['train_seconds'] for r in mine]) / 60, 1)}"
+                        f" | {_f(whole / 60, 1)} | {_f(psnr)} | {_f(plain_then)}{mark} | {_sign(psnr - plain_then)}"
+                        f" | {_sign(_mean(last_quarter))} |")  # fmt: skip
+    return [f"## Against wall time, {steps} steps (test PSNR in dB)", "",
+            "| scene | method | train min | whole run min | PSNR | plain after the same training time | gain at equal "
+            "time | PSNR gained over the last quarter of the steps |",
+            "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |", *rows, "",
+            "whole run: set-up, training and every evaluation along the run. plain after the same training time: plain "
+            "Gaussians' test PSNR interpolated along their evaluation curve at this row's training time (*: longer "
+            "than plain trained; its last value). Last quarter: final PSNR minus the PSNR interpolated at 3/4 of the "
+            "steps.", ""]  # fmt: skip
 
 
 def _display_path(path: Optional[Path]) -> str:
