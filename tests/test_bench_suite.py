@@ -247,6 +247,16 @@ def test_fingerprint_follows_the_resolved_preset(tmp_path: Path, monkeypatch: py
     assert fingerprint(suite, plain) != plain_before
 
 
+def test_fields_added_at_their_neutral_value_keep_the_fingerprint() -> None:
+    """feature_grid_cells=0 (added later, trains as before) is not in the preset fingerprint; another value is."""
+    from gsmsdr_ns.bench.fingerprint import preset_fingerprint
+    from gsmsdr_ns.bench.methods import METHODS
+
+    full, capped = preset_fingerprint(METHODS["full"]), preset_fingerprint(METHODS["full-grid4k"])
+    assert "feature_grid_cells" not in full and "feature_grid_cells=4096" in capped
+    assert capped.replace("feature_grid_cells=4096, ", "") == full
+
+
 SHARED_TRAINING_SUITE = """\
 name: shared
 scene_defaults: {width: 48, height: 36, num_views: 8, hold: 4, num_points: 300, seed: 0}

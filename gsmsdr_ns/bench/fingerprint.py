@@ -17,6 +17,11 @@ RECORD_VERSION = 1
 """Bumped when a record's meaning changes: older records are then rerun instead of reused."""
 
 
+ADDED_AT_NEUTRAL: Dict[str, Any] = {"feature_grid_cells": 0}
+"""Config fields added after records were made, each with the value that trains exactly as before: left out of
+:func:`preset_fingerprint` at that value, so adding them does not rerun every record (another value changes it)."""
+
+
 def preset_fingerprint(method: MethodSpec) -> str:
     """The resolved model and optimizer settings of ``method`` (its preset with its changes applied), so a record
     made before a preset default changed is rerun. Paths are left out, and so are the blur field's and degradation
@@ -27,7 +32,10 @@ def preset_fingerprint(method: MethodSpec) -> str:
         model = copy.copy(model)
         model.blur_field = model.degradation_model = None
         optimizers = {k: v for k, v in optimizers.items() if not k.startswith("blur_")}
-    return repr(model) + repr(sorted(optimizers.items()))
+    text = repr(model) + repr(sorted(optimizers.items()))
+    for name, value in ADDED_AT_NEUTRAL.items():
+        text = text.replace(f"{name}={value!r}, ", "")
+    return text
 
 
 def fingerprint(suite: Suite, key: RunKey, estimate: bool = True) -> str:
