@@ -259,6 +259,22 @@ METHODS: Dict[str, MethodSpec] = {
             "one kernel per training view (mask 1), no feature network (fast)",
             mode="view",
         ),  # fmt: skip
+        _method(
+            "view-k33",
+            "per-view kernels, kernels 9/17/33",
+            "gsmsdr",
+            "mode view with kernels of 9 / 17 / 33 px (HPKO 1/4, 1/2, full resolution)",
+            mode="view",
+            kernel_sizes=(9, 17, 33),
+        ),  # fmt: skip
+        _method(
+            "view-k25",
+            "per-view kernels, kernels 7/13/25",
+            "gsmsdr",
+            "mode view with kernels of 7 / 13 / 25 px (HPKO 1/4, 1/2, full resolution)",
+            mode="view",
+            kernel_sizes=(7, 13, 25),
+        ),  # fmt: skip
         _method("-gaka", "-GAKA", "gsmsdr", "full without Global-Aware Kernel Attention", gaka=False),
         _method("-safm", "-SAFM", "gsmsdr", "full without the Spatial Adaptive Fusion Module", safm=False),
         _method("-mca", "-MCA", "gsmsdr", "full without the Multi-modal Context Adapter", mca=False),
@@ -268,7 +284,7 @@ METHODS: Dict[str, MethodSpec] = {
             "gsmsdr-cpu",
             "gsmsdr-cpu",
             "gsmsdr-cpu",
-            "the gsmsdr-cpu preset (mode view, thin lens; the suite's schedule replaces the preset's own)",
+            "the gsmsdr-cpu preset (mode view, kernels 7/13/25; the suite's schedule replaces the preset's own)",
         ),  # fmt: skip
         MethodSpec(
             "sharp-degraded-poses",
