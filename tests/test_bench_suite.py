@@ -168,8 +168,8 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert set(METHODS) == {"plain", "plain-poses", "msd-only", "re-only", "full", "full-poses", "full-uncentred",
                             "full-lens-unknown", "full-paper-loss", "full-margin", "full-shake", "full-true",
                             "full-per-pixel", "full-fallback", "full-fallback-coarse", "full-anchor", "full-lens-early",
-                            "-view", "view",
-                            "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite", "sharp-degraded-poses",
+                            "full-grid4k", "-view", "view", "view-k25", "view-k33",
+                            "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite", "gsmsdr-cpu", "sharp-degraded-poses",
                             "sharp"}  # fmt: skip
 
     def model(name: str):
@@ -191,6 +191,11 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
         assert getattr(field, switch) is False
         assert all(getattr(field, other) for other in ("gaka", "safm", "mca", "rgbd") if other != switch)
     assert model("gsmsdr-lite").blur_field.size == "lite"
+    assert (
+        model("full-grid4k").blur_field.feature_grid_cells == 4096 and model("full").blur_field.feature_grid_cells == 0
+    )
+    assert model("view-k25").blur_field.kernel_sizes == (7, 13, 25) == model("gsmsdr-cpu").blur_field.kernel_sizes
+    assert model("view-k33").blur_field.kernel_sizes == (9, 17, 33) and model("gsmsdr-cpu").blur_field.mode == "view"
     assert model("full").blur_field.view_kernels and model("full").blur_field.pixel_kernels
     assert not model("-view").blur_field.view_kernels and model("view").blur_field.mode == "view"
     assert METHODS["re-only"].modules() == dict(GAKA=True, SAFM=True, MCA=True, RGBD=True, HPKO=False)

@@ -184,6 +184,11 @@ class BlurFieldConfig:
         keep = max(1, min(len(self.kernel_sizes), int(num_downscales) + 1))
         return dataclasses.replace(self, kernel_sizes=tuple(self.kernel_sizes)[-keep:])
 
+    def __setstate__(self, state: Dict[str, Any]) -> None:
+        """Loading a config.yml (or a pickle): fields added since it was written take their defaults."""
+        defaults = {f.name: f.default for f in dataclasses.fields(self) if f.default is not dataclasses.MISSING}
+        self.__dict__.update({**defaults, **state})
+
     def grid_factor(self, size: Tuple[int, int]) -> int:
         """The feature grid's cell size (pixels) on a render of ``size`` (H, W)."""
         factor = int(self.feature_downsample)
