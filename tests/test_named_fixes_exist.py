@@ -21,7 +21,7 @@ PIPELINE_OPTION = re.compile(r"--(pipeline\.[a-z0-9._-]*[a-z0-9_-])")
 COMMAND = re.compile(r"\b(gsmsdr-(?:synth|bench|degrade|estimate|process|export|eval))\b")
 BOUNDARY = re.compile(r"\bgsmsdr-[a-z]+\b|\bns-[a-z]+\b|\bpython\b|\{\}")
 """Where one command's flags end: another command, a Python module run, or an f-string's replacement field."""
-BENCH_SUBCOMMANDS = ("raster", "kernels", "degrade", "memory", "sfm", "suite", "step")
+BENCH_SUBCOMMANDS = ("raster", "kernels", "degrade", "memory", "sfm", "suite", "step", "eta")
 FLAG = re.compile(r"(?<![\w-])--([a-z][a-z0-9-]*[a-z0-9])\b")
 
 
