@@ -18,6 +18,7 @@ from __future__ import annotations
 import bisect
 from collections import deque
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Deque, Dict, List, Optional, Sequence, Tuple
 
 __all__ = ["StepSchedule", "TimeEstimate", "format_duration", "step_schedule_of"]
@@ -50,11 +51,12 @@ class StepSchedule:
         """Index of the resolution stage ``step`` trains in."""
         return bisect.bisect_right(self.stage_starts, step) - 1
 
-    def phase_bounds(self) -> List[int]:
+    @cached_property
+    def phase_bounds(self) -> Tuple[int, ...]:
         """Sorted steps where a phase of constant cost starts: stage starts, ``phase_starts`` and the end of
-        densification, below ``max_steps``."""
+        densification, below ``max_steps`` (computed once: the trainer asks every step)."""
         starts = set(self.stage_starts) | set(self.phase_starts) | {self.densify_until}
-        return sorted(s for s in starts if 0 <= s < self.max_steps)
+        return tuple(sorted(s for s in starts if 0 <= s < self.max_steps))
 
 
 def format_duration(seconds: float) -> str:
@@ -99,7 +101,7 @@ class TimeEstimate:
     _gaussians: Deque[Tuple[int, int]] = field(default_factory=deque, repr=False)
 
     def _phase_start(self, step: int) -> int:
-        bounds = self.schedule.phase_bounds()
+        bounds = self.schedule.phase_bounds
         i = bisect.bisect_right(bounds, step) - 1
         return bounds[i] if i >= 0 else 0
 
@@ -136,7 +138,7 @@ class TimeEstimate:
         pixels_now = sched.stage_pixels[sched.stage(self._last_step)]
         first = self._last_step + 1
         # chunks of constant pixels; while the Gaussians grow, 8 chunks so that their growth is followed
-        cuts = {first, sched.max_steps, *(b for b in sched.phase_bounds() if b > first)}
+        cuts = {first, sched.max_steps, *(b for b in sched.phase_bounds if b > first)}
         grow_end = min(sched.densify_until, sched.max_steps)
         if grow_end > first:
             cuts.update(first + (grow_end - first) * i // 8 for i in range(1, 8))
