@@ -168,6 +168,7 @@ def test_a_full_disk_says_so_and_leaves_no_partial_checkpoint(tmp_path: Path, mo
         save_checkpoint_atomic({"step": 2, "w": torch.zeros(100_000)}, path)
     message = str(caught.value)
     assert message.startswith(f"gsmsdr: no space left on the disk to save checkpoint '{path}' (")
+    assert f"free in '{models}')" in message  # how much room the checkpoint folder's disk has
     assert "Free some space, or train with --output-dir on a disk with room" in message
     assert caught.value.errno == errno.ENOSPC and isinstance(caught.value.__cause__, OSError)
     assert not path.exists() and not os.path.lexists(temporary)

@@ -28,7 +28,6 @@ from __future__ import annotations
 import os
 import re
 import secrets
-import shutil
 import zipfile
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional
@@ -37,7 +36,14 @@ import numpy as np
 import torch
 
 from gsmsdr_ns.io.atomic import remove_stale_temporaries
-from gsmsdr_ns.io.errors import DiskFullError, InputError, disk_full_cause, disk_full_error, format_bytes
+from gsmsdr_ns.io.errors import (
+    DiskFullError,
+    InputError,
+    disk_full_cause,
+    disk_full_error,
+    format_bytes,
+    free_space_text,
+)
 
 
 def checkpoint_safe_globals() -> List[object]:
@@ -195,13 +201,9 @@ def tensor_bytes(payload: Any) -> int:
 
 
 def _disk_full_error(path: Path, error: OSError, needed: int) -> DiskFullError:
-    try:
-        free = f"{format_bytes(shutil.disk_usage(path.parent).free)} free"
-    except OSError:
-        free = "free space unknown"
     return disk_full_error(
         f"gsmsdr: no space left on the disk to save checkpoint '{path}' (it needs about {format_bytes(needed)}, "
-        f"{free}); nothing was written, the "
+        f"{free_space_text(path.parent)}); nothing was written, the "
         f"checkpoints already in '{path.parent}' are kept. Free some space, or train with --output-dir on a disk "
         f"with room (resume with --load-dir {path.parent}).",
         error.errno,
