@@ -90,11 +90,12 @@ class TimeEstimate:
     schedule: StepSchedule
     pixel_exponent: float = 0.55
     """Step cost ~ pixels ** this across resolution stages (fern at 458x333: 0.51-0.57 for plain, full, view, lite)."""
-    gaussian_exponent: float = 0.5
-    """Step cost ~ Gaussians ** this at one resolution."""
+    gaussian_exponent: float = 0.2
+    """Step cost ~ Gaussians ** this at one resolution (0.19-0.29 within a resolution stage while densification grew
+    the Gaussians 2-6x: gsmsdr-cpu on fern at 458x333, plain on the generated 600x400 scene)."""
     settle: int = 3
     window: int = 100
-    growth_window: int = 100
+    growth_window: int = 200
     """Steps over which the Gaussians' growth rate is measured."""
     _phases: Dict[int, _Phase] = field(default_factory=dict, repr=False)
     _last_step: int = field(default=-1, repr=False)
