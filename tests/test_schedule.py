@@ -58,13 +58,13 @@ def test_demo_preset_values(tmp_path: Path) -> None:
 
 
 def test_cpu_preset_is_mode_view_on_the_real_size_suites_schedule(tmp_path: Path) -> None:
-    """gsmsdr-cpu = the gsmsdr preset with one kernel per view (7 / 13 / 25 px), trained on the real-size suite's
-    schedule; so the suite's `gsmsdr-cpu` row trains the preset as ns-train does (with `view-k25`'s model)."""
+    """gsmsdr-cpu = the gsmsdr preset with one kernel per view (9 / 17 / 33 px), trained on the real-size suite's
+    schedule; so the suite's `gsmsdr-cpu` row trains the preset as ns-train does (with `view-k33`'s model)."""
     from gsmsdr_ns.bench.suite_config import find_suite_file, load_suite
 
     config = gsmsdr_cpu_trainer_config()
     field = config.pipeline.model.blur_field
-    assert config.method_name == "gsmsdr-cpu" and field.mode == "view" and field.kernel_sizes == (7, 13, 25)
+    assert config.method_name == "gsmsdr-cpu" and field.mode == "view" and field.kernel_sizes == (9, 17, 33)
     expected = gsmsdr_trainer_config()
     expected.pipeline.model.blur_field = field
     suite = load_suite(find_suite_file("real-size"))
@@ -74,7 +74,7 @@ def test_cpu_preset_is_mode_view_on_the_real_size_suites_schedule(tmp_path: Path
     as_bench = method_spec("gsmsdr-cpu").make_config(tmp_path, tmp_path / "out")
     suite.schedule_for(3000).apply(as_bench)
     assert _settings(as_bench) == _settings(config) and as_bench.pipeline.model.blur_field == field
-    view = method_spec("view-k25").make_config(tmp_path, tmp_path / "out")
+    view = method_spec("view-k33").make_config(tmp_path, tmp_path / "out")
     suite.schedule_for(3000).apply(view)
     assert repr(as_bench.pipeline.model) == repr(view.pipeline.model)
 

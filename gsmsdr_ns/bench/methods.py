@@ -284,7 +284,7 @@ METHODS: Dict[str, MethodSpec] = {
             "gsmsdr-cpu",
             "gsmsdr-cpu",
             "gsmsdr-cpu",
-            "the gsmsdr-cpu preset (mode view, kernels 7/13/25; the suite's schedule replaces the preset's own)",
+            "the gsmsdr-cpu preset (mode view, kernels 9/17/33; the suite's schedule replaces the preset's own)",
         ),  # fmt: skip
         MethodSpec(
             "sharp-degraded-poses",

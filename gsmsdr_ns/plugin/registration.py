@@ -26,5 +26,5 @@ gsmsdr_lite_method = MethodSpecification(
 
 gsmsdr_cpu_method = MethodSpecification(
     config=gsmsdr_cpu_trainer_config(),
-    description="GS-MSDR CPU: real-size captures on a CPU (a learnt kernel up to 25 px per view, thin lens, 3k steps)",
+    description="GS-MSDR CPU: real-size captures on a CPU (a learnt kernel up to 33 px per view, thin lens, 3k steps)",
 )
