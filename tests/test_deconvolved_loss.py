@@ -7,7 +7,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from gsmsdr_ns.ops.deconvolved_loss import deconvolved_residual, fast_fft_length, mean_kernel
+from gsmsdr_ns.ops.deconvolved_loss import deconvolved_residual, mean_kernel
+from gsmsdr_ns.ops.fft_length import fast_fft_length
 
 
 def gaussian_kernel(K: int, sigma: float) -> torch.Tensor:

@@ -13,6 +13,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from gsmsdr_ns.ops.fft_length import fast_fft_length
+
 
 def mean_kernel(kernels: Tensor) -> Tensor:
     """The image's mean kernel.
@@ -39,25 +41,6 @@ def blend_with_identity(kernel: Tensor, mask: Tensor) -> Tensor:
     out = kernel * mask[:, None, None]
     out[:, K // 2, K // 2] += 1.0 - mask
     return out
-
-
-def fast_fft_length(n: int) -> int:
-    """The smallest length >= n whose only prime factors are 2, 3 and 5 (an FFT of a length with a large prime
-    factor, e.g. 263, runs many times slower)."""
-    best = 1
-    while best < n:
-        best *= 2
-    power5 = 1
-    while power5 < 2 * n:
-        power35 = power5
-        while power35 < 2 * n:
-            length = power35
-            while length < n:
-                length *= 2
-            best = min(best, length)
-            power35 *= 3
-        power5 *= 5
-    return best
 
 
 def deconvolved_residual(residual: Tensor, kernel: Tensor, eps: float) -> Tensor:
