@@ -45,7 +45,7 @@ def test_growing_gaussians_raise_the_cost_ahead_until_densification_stops():
     assert estimate.remaining() == pytest.approx(truth, rel=0.03)
     flat = TimeEstimate(schedule, gaussian_exponent=0.0)
     feed(flat, cost, gaussians, upto=100)
-    assert flat.remaining() < 0.95 * truth  # without the growth term the estimate is short
+    assert flat.remaining() < 0.9 * truth  # without the growth term the estimate is short
 
 
 def test_the_steps_after_a_cost_change_settle_before_they_count():
