@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import re
+import subprocess
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Literal, Optional, Tuple
@@ -13,7 +15,14 @@ import pycolmap
 import pytest
 from PIL import Image
 
-from gsmsdr_ns.io.atomic import atomic_dir, write_bytes_atomic, write_file_atomic, write_json_atomic, write_text_atomic
+from gsmsdr_ns.io.atomic import (
+    atomic_dir,
+    exclusive_lock,
+    write_bytes_atomic,
+    write_file_atomic,
+    write_json_atomic,
+    write_text_atomic,
+)
 from gsmsdr_ns.io.colmap import ColmapPoints, has_colmap_model, read_colmap, write_colmap_model
 from gsmsdr_ns.io.config import load_dataclass, read_yaml_mapping
 from gsmsdr_ns.io.errors import InputError
@@ -264,6 +273,24 @@ def test_atomic_dir_replaces_or_keeps(tmp_path):
         (tmp / "b.txt").write_text("two")
     assert [p.name for p in target.iterdir()] == ["b.txt"]  # replaced as a whole
     assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no temp or old folders left
+
+
+def test_exclusive_lock_makes_a_second_process_wait(tmp_path):
+    """A process that wants the lock another holds blocks until it is released, then enters."""
+    target = tmp_path / "scene"
+    entered = tmp_path / "entered"
+    script = (
+        "import sys; from pathlib import Path; from gsmsdr_ns.io.atomic import exclusive_lock\n"
+        "with exclusive_lock(Path(sys.argv[1])):\n"
+        "    Path(sys.argv[2]).write_text('in')\n"
+    )
+    with exclusive_lock(target) as lock:
+        assert lock == tmp_path / ".scene.lock"
+        proc = subprocess.Popen([sys.executable, "-c", script, str(target), str(entered)])
+        with pytest.raises(subprocess.TimeoutExpired):
+            proc.wait(timeout=3)  # still waiting for the lock this process holds
+        assert not entered.exists()
+    assert proc.wait(timeout=300) == 0 and entered.read_text() == "in"
 
 
 # ----------------------------------------------------------------------------------------------------- config

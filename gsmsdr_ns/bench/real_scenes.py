@@ -34,7 +34,7 @@ from typing import Any, Callable, Dict, Optional, Sequence
 
 import numpy as np
 
-from gsmsdr_ns.io.atomic import atomic_dir, temp_sibling_dir, write_json_atomic
+from gsmsdr_ns.io.atomic import atomic_dir, exclusive_lock, temp_sibling_dir, write_json_atomic
 from gsmsdr_ns.io.colmap import quiet_pycolmap
 from gsmsdr_ns.io.errors import InputError
 from gsmsdr_ns.io.photo_sets import DATA_DIR_ENV, photo_set_roots
@@ -338,30 +338,35 @@ def ensure_real_scene(bench_dir: Path, spec: RealSceneSpec, records: str = "esti
     out = root / spec.name(records, photos)
     if (out / "real_scene.json").is_file():
         return out
-    root.mkdir(parents=True, exist_ok=True)
-    source = resolve_photos(spec, anchors)
-    sharp_scene = root / f"{spec.photos_name}-sfm-s{spec.seed}-r{REAL_SCENE_VERSION}"
-    if not (sharp_scene / "sparse" / "0").is_dir():
-        _process(source, sharp_scene, spec, log)
-    degraded = _ensure_degraded(root, spec, sharp_scene, log)
-    suffix = "" if photos == "degraded" else f"-{photos}-photos"
-    registered = root / f"{spec.degraded_name}-degraded-sfm{suffix}"
-    if not (registered / REGISTRATION_FILE).is_file():
-        names = sorted(p.name for p in (degraded / "images").iterdir())
-        split = [(name, split_of(index, spec.hold)) for index, name in enumerate(names)]
-        train, test = [n for n, s in split if s == "train"], [n for n, s in split if s == "test"]
-        # the degraded scene's sharp twins: the originals cropped as the degraded photos were
-        sharp = None if photos == "degraded" else degraded / "images_test"
-        map_and_register(degraded / "images", train, test, registered, spec, log, written_photos=sharp)
-    with atomic_dir(out) as tmp:
-        facts = compose_scene(tmp, registered, spec.hold, spec.train_downscale)
-        facts.update(json.loads((registered / REGISTRATION_FILE).read_text(encoding="utf8")))
-        if records == "true" and photos == "degraded":
-            records_doc = true_records(degraded / "degradation.json", facts["names"])
-            write_json_atomic(tmp / "degradation.json", records_doc)
-        write_json_atomic(tmp / "real_scene.json", {"version": REAL_SCENE_VERSION, "photos": str(source),
-                                                    "spec": dataclasses.asdict(spec), "records": records,
-                                                    "training_photos": photos, **facts})  # fmt: skip
+    # suites running in parallel may need the same scene (or its shared structure-from-motion) at once: builds
+    # take turns, and a later one reuses what an earlier one built
+    with exclusive_lock(root):
+        if (out / "real_scene.json").is_file():
+            return out
+        root.mkdir(parents=True, exist_ok=True)
+        source = resolve_photos(spec, anchors)
+        sharp_scene = root / f"{spec.photos_name}-sfm-s{spec.seed}-r{REAL_SCENE_VERSION}"
+        if not (sharp_scene / "sparse" / "0").is_dir():
+            _process(source, sharp_scene, spec, log)
+        degraded = _ensure_degraded(root, spec, sharp_scene, log)
+        suffix = "" if photos == "degraded" else f"-{photos}-photos"
+        registered = root / f"{spec.degraded_name}-degraded-sfm{suffix}"
+        if not (registered / REGISTRATION_FILE).is_file():
+            names = sorted(p.name for p in (degraded / "images").iterdir())
+            split = [(name, split_of(index, spec.hold)) for index, name in enumerate(names)]
+            train, test = [n for n, s in split if s == "train"], [n for n, s in split if s == "test"]
+            # the degraded scene's sharp twins: the originals cropped as the degraded photos were
+            sharp = None if photos == "degraded" else degraded / "images_test"
+            map_and_register(degraded / "images", train, test, registered, spec, log, written_photos=sharp)
+        with atomic_dir(out) as tmp:
+            facts = compose_scene(tmp, registered, spec.hold, spec.train_downscale)
+            facts.update(json.loads((registered / REGISTRATION_FILE).read_text(encoding="utf8")))
+            if records == "true" and photos == "degraded":
+                records_doc = true_records(degraded / "degradation.json", facts["names"])
+                write_json_atomic(tmp / "degradation.json", records_doc)
+            write_json_atomic(tmp / "real_scene.json", {"version": REAL_SCENE_VERSION, "photos": str(source),
+                                                        "spec": dataclasses.asdict(spec), "records": records,
+                                                        "training_photos": photos, **facts})  # fmt: skip
     shown = "degraded photos" if photos == "degraded" else "sharp photos, posed by the degraded photos' model"
     log(
         f"real scene: wrote {out} ({facts['views']} views: {shown}; {len(facts['test_views'])} sharp test views "

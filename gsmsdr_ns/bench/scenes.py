@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional
 
-from gsmsdr_ns.io.atomic import replace_dir, temp_sibling_dir
+from gsmsdr_ns.io.atomic import exclusive_lock, replace_dir, temp_sibling_dir
 
 SCENE_DATA_VERSION = 2
 """Bumped when generated scenes change for the same spec (2: motion sub-frames rendered with the scene's own
@@ -57,21 +57,22 @@ def ensure_scene(bench_dir: Path, spec: SceneSpec, log: Optional[Callable[[str],
 
     if complete(out):
         return out
-    out.parent.mkdir(parents=True, exist_ok=True)
     scene = SynthSceneConfig(
         seed=spec.seed, num_views=spec.num_views, width=spec.width, height=spec.height, num_points=spec.num_points
     )
-    if log is not None:
-        log(f"accuracy: generating {out}")
-    # generated beside its final place, then renamed: a suite running in parallel never sees half a scene, and two
-    # processes generating the same scene both end up with one complete copy
-    partial = temp_sibling_dir(out)
-    try:
-        generate_variant(partial, scene, spec.variant, hold=spec.hold, overwrite=True)
-        if not complete(out):  # another process may have finished the same scene meanwhile: keep its copy
+    # suites running in parallel may need the same scene at once: one generates it, the others wait and reuse it
+    with exclusive_lock(out):
+        if complete(out):
+            return out
+        if log is not None:
+            log(f"accuracy: generating {out}")
+        # generated beside its final place, then renamed: a reader that takes no lock never sees half a scene
+        partial = temp_sibling_dir(out)
+        try:
+            generate_variant(partial, scene, spec.variant, hold=spec.hold, overwrite=True)
             replace_dir(partial, out)  # also replaces a folder left by an interrupted run of an older version
-    finally:
-        shutil.rmtree(partial, ignore_errors=True)
+        finally:
+            shutil.rmtree(partial, ignore_errors=True)
     return out
 
 

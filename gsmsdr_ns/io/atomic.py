@@ -13,6 +13,7 @@ needs and the room there is.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import re
@@ -201,3 +202,21 @@ def atomic_dir(target: Path) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+@contextmanager
+def exclusive_lock(target: Path) -> Iterator[Path]:
+    """Hold an exclusive lock on ``target`` (through the hidden file ``.<name>.lock`` beside it) for the block.
+
+    Processes that build the same ``target`` take turns: the second one enters the block after the first left it
+    and can find the finished target. The lock is released when the process dies; the lock file stays (empty).
+    """
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    lock = target.parent / f".{target.name}.lock"
+    with open(lock, "a") as handle:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX)
+        try:
+            yield lock
+        finally:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
