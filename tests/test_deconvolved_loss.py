@@ -7,7 +7,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from gsmsdr_ns.ops.deconvolved_loss import deconvolved_residual, mean_kernel
+from gsmsdr_ns.ops.deconvolved_loss import compose_kernels, deconvolved_residual, mean_kernel
+from gsmsdr_ns.ops.disk_kernels import mean_soft_disk_kernel, soft_disk_kernels
 from gsmsdr_ns.ops.fft_length import fast_fft_length
 
 
@@ -65,6 +66,35 @@ def test_mean_kernel_of_grid_weights():
     k = mean_kernel(weights)
     assert k.shape == (2, 5, 5)
     torch.testing.assert_close(k.sum(dim=(-2, -1)), torch.ones(2, dtype=torch.float64))
+
+
+def test_composed_kernels_blur_as_one_blur_after_the_other():
+    first, second = gaussian_kernel(5, 1.0), gaussian_kernel(3, 0.7)
+    both = compose_kernels(first, second)
+    assert both.shape == (1, 7, 7)
+    torch.testing.assert_close(both.sum(), torch.tensor(1.0, dtype=torch.float64))
+    image = smooth_image(24, 24)
+
+    def blur(x, k):  # zero-padded correlation with a flipped kernel: a convolution
+        K = k.shape[-1]
+        return F.conv2d(F.pad(x, (K // 2,) * 4), k.flip(-2, -1)[:, None].expand(3, 1, K, K), groups=3)
+
+    torch.testing.assert_close(blur(blur(image, first), second)[..., 4:-4, 4:-4], blur(image, both)[..., 4:-4, 4:-4])
+    identity = torch.zeros(1, 3, 3, dtype=torch.float64)
+    identity[0, 1, 1] = 1.0
+    torch.testing.assert_close(compose_kernels(first, identity)[:, 1:-1, 1:-1], first)
+
+
+def test_mean_soft_disk_kernel_is_the_mean_of_the_pixels_disks():
+    radius = torch.rand(2, 1, 6, 7, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 3
+    exact = soft_disk_kernels(radius, 7).mean(dim=(-2, -1)).reshape(2, 7, 7)
+    torch.testing.assert_close(mean_soft_disk_kernel(radius, 7), exact)
+    ramp = torch.linspace(0, 3, 40, dtype=torch.float64).expand(1, 1, 40, 40)  # a smooth radius map
+    sampled = mean_soft_disk_kernel(ramp, 7, max_pixels=100)  # every 4th row and column
+    torch.testing.assert_close(sampled.sum(), torch.tensor(1.0, dtype=torch.float64))
+    assert (sampled - soft_disk_kernels(ramp, 7).mean(dim=(-2, -1)).reshape(1, 7, 7)).abs().max() < 0.02
+    flat = torch.full((1, 1, 50, 50), 2.0, dtype=torch.float64)  # one radius everywhere: its disk, whatever the sample
+    torch.testing.assert_close(mean_soft_disk_kernel(flat, 7, max_pixels=16), soft_disk_kernels(flat[..., :1, :1], 7).reshape(1, 7, 7))
 
 
 @pytest.mark.parametrize("bad", [dict(eps=0.0), dict(kernel=torch.ones(1, 1, 3, 3))])

@@ -71,3 +71,36 @@ def test_the_plugin_model_starts_the_lens_at_its_stop_split_at():
     outputs = model.get_outputs(camera)
     assert outputs["rgb"] is outputs["rgb_degraded"]  # through the lens
     assert not torch.equal(outputs["rgb"], outputs["rgb_sharp"])
+
+
+@pytest.mark.parametrize("on_lens", [True, False])
+def test_a_view_the_lens_blurs_takes_the_deconvolved_loss_by_the_lens_mean_disk(on_lens):
+    """With ``deconvolved_loss_on_lens`` a defocused view trained through the lens alone gets ``blur_deconvolved``,
+    weighted by the lens's mean disk over the image; before the lens starts, or with the option off, it gets none."""
+    camera = make_camera(look_from([2.0, 0.5, 1.0]), width=64, height=48)
+    camera.metadata = {"cam_idx": 0}
+    image = torch.rand(48, 64, 3, generator=torch.Generator().manual_seed(0))
+    options = DegradationConfig(warmup=0, thin_lens_initial_aperture=20.0, thin_lens_start="densify_end",
+                                fallback=False, deconvolved_loss_on_lens=on_lens)  # fmt: skip
+    torch.manual_seed(0)
+    model = build({"degradations": records("defocus", 2)}, n=2, degradation_model=options, background_color="black",
+                  num_downscales=0, stop_split_at=5)  # fmt: skip
+    model.train()
+    model.optimizers = None  # no densification step here
+
+    def step(at: int):
+        model.step = at
+        outputs = model.get_outputs(camera)
+        return model.get_loss_dict(outputs, {"image": image}), outputs.get("degradation")
+
+    losses, aux = step(1)  # before the lens starts: a plain step
+    assert "blur_deconvolved" not in losses and aux is None
+    losses, aux = step(5)
+    if not on_lens:
+        assert "blur_deconvolved" not in losses and aux.kernel_mean is None
+        return
+    kernel = aux.kernel_mean
+    assert kernel.dim() == 3 and kernel.shape[1] == kernel.shape[2] and not kernel.requires_grad
+    torch.testing.assert_close(kernel.sum(), torch.tensor(1.0))
+    assert float(kernel[0, kernel.shape[1] // 2, kernel.shape[2] // 2]) < 0.99  # the lens blurs
+    assert losses["blur_deconvolved"].requires_grad

@@ -222,6 +222,13 @@ METHODS: Dict[str, MethodSpec] = {
             deconvolved_loss_weight=0.0,
         ),
         _method(
+            "full-lens-paper-loss",
+            "GS-MSDR (full), no deconvolved loss on the lens",
+            "gsmsdr",
+            "full without the deconvolved residual loss on images the thin lens blurs (deconvolved_loss_on_lens False)",
+            deconvolved_loss_on_lens=False,
+        ),
+        _method(
             "full-margin",
             "GS-MSDR (full), render margin",
             "gsmsdr",

@@ -21,7 +21,7 @@ from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 from torch import Tensor, nn
 
 from gsmsdr_ns.ops.disk_defocus import apply_occluding_defocus, apply_soft_disk_defocus
-from gsmsdr_ns.ops.disk_kernels import occluding_disk_kernels, soft_disk_kernels
+from gsmsdr_ns.ops.disk_kernels import mean_soft_disk_kernel, occluding_disk_kernels, soft_disk_kernels
 
 from .maan import check_bchw, check_view_ids
 
@@ -168,6 +168,13 @@ class ThinLensDefocus(nn.Module):
         if not self.occlusion:
             return soft_disk_kernels(radius, K, self.softness)
         return occluding_disk_kernels(radius, inverse_depth, K, self.softness)
+
+    @torch.no_grad()
+    def mean_kernel(self, depth: Tensor, view_ids: Tensor, max_kernel_size: int, pixel_scale: float = 1.0) -> Tensor:
+        """[B, K, K] detached mean over the image of the lens's disks for rendered ``depth`` [B, 1, H, W]
+        (:func:`~gsmsdr_ns.ops.disk_kernels.mean_soft_disk_kernel`; occlusion ignored), K as :meth:`forward`."""
+        radius, _, K = self._lens(depth, view_ids, max_kernel_size, pixel_scale)
+        return mean_soft_disk_kernel(radius.float(), K, self.softness)
 
     def blur(
         self,

@@ -95,6 +95,10 @@ class DegradationConfig:
     squared residual weighted by the inverse of the image's mean kernel (loss ``blur_deconvolved``), so the detail the
     blur attenuates reaches the Gaussians at about full strength instead of attenuated twice. 0: off (the paper's
     loss alone)."""
+    deconvolved_loss_on_lens: bool = True
+    """Also take the deconvolved residual loss on images the thin lens blurs, weighted by the inverse of the lens's
+    mean disk over the image (composed with the field's mean kernel when the field runs after the lens). False: on
+    images the field blurs only."""
     deconvolved_loss_eps: float = 0.01
     """Wiener regulariser of that weight: frequencies the blur keeps below sqrt(eps) are amplified at most
     eps^-1/2 times (10x), so noise and frequencies the blur removed are not blown up."""

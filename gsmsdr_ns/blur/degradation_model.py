@@ -38,6 +38,7 @@ from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view,
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, describe_profiles, effective_factor
 from gsmsdr_ns.blur.shake import CameraShake
 from gsmsdr_ns.blur.state_keys import LEGACY_KEY_PREFIXES, remap_legacy_keys, with_fallback_state
+from gsmsdr_ns.ops.deconvolved_loss import compose_kernels
 from gsmsdr_ns.ops.grid_kernels import GridKernels, as_dense
 from gsmsdr_ns.timing_hooks import timed
 
@@ -273,7 +274,8 @@ class DegradationModel(nn.Module):
             blur_field=runs_field,
             shake=self.camera_shake is not None and profile.motion,
             margin=blur_scale.kernel_size // 2 if config.render_margin else 0,
-            deconvolved_loss=runs_field and config.deconvolved_loss_weight > 0,
+            deconvolved_loss=(runs_field or (lens and config.deconvolved_loss_on_lens))
+            and config.deconvolved_loss_weight > 0,
             kernel_centre_loss=runs_field and config.kernel_centre_weight > 0 and not profile.exact_pose,
             has_model=True,
         )
@@ -335,20 +337,31 @@ class DegradationModel(nn.Module):
                 field_depth=plan.blur_uses_depth,
             )
             image = stages.image
+            lens_mean = None
+            if plan.thin_lens and plan.deconvolved_loss and self.config.deconvolved_loss_on_lens:
+                assert self.thin_lens is not None and depth is not None
+                lens_args = (view_ids, plan.blur_scale.kernel_size, 1.0 / plan.render_downscale)
+                lens_mean = self.thin_lens.mean_kernel(_bchw(depth), *lens_args)
             if stages.kernels is not None:
                 assert stages.mask is not None
                 blurred = timed("kernels", BlurField.blur, image, stages.kernels, self.config.linear_light)
                 image = blend(stages.mask, blurred, image)
+                kernel_mean = None
+                if plan.deconvolved_loss:
+                    kernel_mean = mean_blend_kernel(stages.kernels, stages.mask)
+                    kernel_mean = kernel_mean if lens_mean is None else compose_kernels(lens_mean, kernel_mean)
                 aux = DegradationAux(
                     sharp,
                     mask=_hwc(crop_margin(stages.mask, plan.margin)),
                     learnt_mask=self.blur_field.config.mode != "view",
-                    kernel_mean=mean_blend_kernel(stages.kernels, stages.mask) if plan.deconvolved_loss else None,
+                    kernel_mean=kernel_mean,
                     kernel_centroids=(
                         timed("blur_field", kernel_centres, stages.kernels) if plan.kernel_centre_loss else None
                     ),
                     kernel_size=plan.blur_scale.kernel_size,
                 )
+            elif lens_mean is not None:
+                aux = DegradationAux(sharp, kernel_mean=lens_mean)
         image = crop_margin(image, plan.margin)
         if plan.resolution_factor > 1.0:
             assert self.resolution_model is not None

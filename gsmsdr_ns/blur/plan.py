@@ -36,7 +36,8 @@ class DegradationPlan(NamedTuple):
     """Pixels the render reaches beyond each border of the image (:meth:`DegradationModel.forward` blurs the
     enlarged render, then crops them)."""
     deconvolved_loss: bool = False
-    """The field's mean kernel is taken for the deconvolved loss (its weight > 0 and the field runs)."""
+    """The image's mean kernel is taken for the deconvolved loss (its weight > 0, and the field runs or the thin lens
+    does with ``deconvolved_loss_on_lens``)."""
     kernel_centre_loss: bool = False
     """The field's kernel centres are taken for their regulariser (its weight > 0, the field runs, and the image's
     pose was estimated from the photo)."""

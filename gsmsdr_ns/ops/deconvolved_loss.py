@@ -43,6 +43,22 @@ def blend_with_identity(kernel: Tensor, mask: Tensor) -> Tensor:
     return out
 
 
+def compose_kernels(first: Tensor, second: Tensor) -> Tensor:
+    """The kernel of blurring by ``first``, then by ``second``: their full 2D convolution.
+
+    Args:
+        first: [B, K1, K1]. second: [B, K2, K2] (both odd sizes, centred).
+    Returns:
+        [B, K1 + K2 - 1, K1 + K2 - 1], centred; sums to the product of the two sums.
+    """
+    if first.dim() != 3 or second.dim() != 3 or first.shape[0] != second.shape[0]:
+        raise ValueError(f"expected kernels [B, K1, K1] and [B, K2, K2], got {list(first.shape)}, {list(second.shape)}")
+    B, K2 = first.shape[0], second.shape[-1]
+    # conv2d correlates: the flipped second kernel makes it a convolution
+    out = F.conv2d(F.pad(first[None], (K2 - 1,) * 4), second.flip(-2, -1)[:, None].to(first.dtype), groups=B)
+    return out[0]
+
+
 def deconvolved_residual(residual: Tensor, kernel: Tensor, eps: float) -> Tensor:
     """The residual weighted by the inverse of ``kernel``'s spectrum (module docstring).
 

@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["soft_disk_kernels", "occluding_disk_kernels", "check_disk_window"]
+__all__ = ["soft_disk_kernels", "occluding_disk_kernels", "mean_soft_disk_kernel", "check_disk_window"]
 
 
 def check_disk_window(kernel_size: int, softness: float) -> None:
@@ -56,6 +56,30 @@ def soft_disk_kernels(radius: Tensor, kernel_size: int, softness: float = 0.25) 
         raise ValueError(f"radius must be [B, 1, H, W], got {list(radius.shape)}")
     weights = _disk_coverage(radius, kernel_size, softness)
     return weights / weights.sum(dim=1, keepdim=True)
+
+
+def mean_soft_disk_kernel(radius: Tensor, kernel_size: int, softness: float = 0.25, max_pixels: int = 4096) -> Tensor:
+    """The mean over an image of its pixels' :func:`soft_disk_kernels` (occlusion ignored): the image's mean blur.
+
+    Larger images are averaged over an even grid of at most about ``max_pixels`` of their pixels (the mean over a
+    smooth radius map changes little; holding every pixel's K*K weights would cost K*K times the image).
+
+    Args:
+        radius: [B, 1, H, W] disk radius in pixels, >= 0.
+        kernel_size: odd window size K.
+        softness: edge width in pixels (> 0).
+        max_pixels: pixels averaged per image, at most about.
+    Returns:
+        [B, K, K], summing to 1.
+    """
+    check_disk_window(kernel_size, softness)
+    if radius.dim() != 4 or radius.shape[1] != 1:
+        raise ValueError(f"radius must be [B, 1, H, W], got {list(radius.shape)}")
+    H, W = radius.shape[-2:]
+    stride = max(1, math.ceil(math.sqrt(H * W / max_pixels)))
+    sample = radius[..., stride // 2 :: stride, stride // 2 :: stride]  # an even grid of pixels, centred
+    weights = soft_disk_kernels(sample, kernel_size, softness)  # [B, K*K, h, w]
+    return weights.mean(dim=(-2, -1)).reshape(radius.shape[0], kernel_size, kernel_size)
 
 
 def occluding_disk_kernels(radius: Tensor, inverse_depth: Tensor, kernel_size: int, softness: float = 0.25) -> Tensor:
