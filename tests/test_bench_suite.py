@@ -166,7 +166,8 @@ def test_user_scene_without_sharp_twin_skips_the_upper_bound(tmp_path: Path) -> 
 
 def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert set(METHODS) == {"plain", "plain-poses", "msd-only", "re-only", "full", "full-poses", "full-uncentred",
-                            "full-lens-unknown", "full-paper-loss", "full-margin", "full-shake", "full-true",
+                            "full-lens-unknown", "full-paper-loss", "full-lens-paper-loss",
+                            "full-margin", "full-shake", "full-true",
                             "full-per-pixel", "full-fallback", "full-fallback-coarse", "full-anchor", "full-lens-early",
                             "full-grid4k", "-view", "view", "view-k25", "view-k33",
                             "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite", "gsmsdr-cpu", "sharp-degraded-poses",
@@ -179,6 +180,8 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert model("full-fallback").degradation_model.fallback and not model("full").degradation_model.fallback
     assert model("full-lens-early").degradation_model.thin_lens_start == "warmup"
     assert model("full").degradation_model.thin_lens_start == "densify_end"
+    assert model("full").degradation_model.deconvolved_loss_on_lens
+    assert not model("full-lens-paper-loss").degradation_model.deconvolved_loss_on_lens
     assert METHODS["sharp"].sharp_data and not METHODS["plain"].sharp_data
     bound = METHODS["sharp-degraded-poses"]
     assert bound.sharp_data and bound.degraded_poses and not METHODS["sharp"].degraded_poses
