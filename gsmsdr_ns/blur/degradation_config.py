@@ -91,10 +91,10 @@ class DegradationConfig:
     amount in every view). Images whose records give the exact mid-exposure pose of a simulated shake (generated
     and ``gsmsdr-degrade`` scenes) are not centred. 0: off."""
     deconvolved_loss_weight: float = 10.0
-    """Weight of the deconvolved residual loss (``ops/deconvolved_loss.py``) on images the field blurs: the mean
-    squared residual weighted by the inverse of the image's mean kernel (loss ``blur_deconvolved``), so the detail the
-    blur attenuates reaches the Gaussians at about full strength instead of attenuated twice. 0: off (the paper's
-    loss alone)."""
+    """Weight of the deconvolved residual loss (``ops/deconvolved_loss.py``) on images the field (or, with
+    ``deconvolved_loss_on_lens``, the thin lens) blurs: the mean squared residual weighted by the inverse of the
+    image's mean kernel (loss ``blur_deconvolved``), so the detail the blur attenuates reaches the Gaussians at about
+    full strength instead of attenuated twice. 0: off (the paper's loss alone)."""
     deconvolved_loss_on_lens: bool = True
     """Also take the deconvolved residual loss on images the thin lens blurs, weighted by the inverse of the lens's
     mean disk over the image (composed with the field's mean kernel when the field runs after the lens). False: on
