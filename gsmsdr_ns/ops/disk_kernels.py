@@ -14,6 +14,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from gsmsdr_ns.ops.deconvolved_loss import mean_kernel
+
 __all__ = ["soft_disk_kernels", "occluding_disk_kernels", "mean_soft_disk_kernel", "check_disk_window"]
 
 
@@ -78,8 +80,7 @@ def mean_soft_disk_kernel(radius: Tensor, kernel_size: int, softness: float = 0.
     H, W = radius.shape[-2:]
     stride = max(1, math.ceil(math.sqrt(H * W / max_pixels)))
     sample = radius[..., stride // 2 :: stride, stride // 2 :: stride]  # an even grid of pixels, centred
-    weights = soft_disk_kernels(sample, kernel_size, softness)  # [B, K*K, h, w]
-    return weights.mean(dim=(-2, -1)).reshape(radius.shape[0], kernel_size, kernel_size)
+    return mean_kernel(soft_disk_kernels(sample, kernel_size, softness))
 
 
 def occluding_disk_kernels(radius: Tensor, inverse_depth: Tensor, kernel_size: int, softness: float = 0.25) -> Tensor:
