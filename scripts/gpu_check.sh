@@ -11,13 +11,15 @@
 #   git rev-parse --short HEAD > .gpu/commit            # the commit results.md names
 # Run on the GPU machine, from the repository root:
 #   bash scripts/gpu_check.sh OUT [STAGE ...]
-# STAGE: install build tests step lite (default: all of them, in that order; install and build are needed by the
-# others in a fresh shell, and are quick when already done). A gsplat extension built by an earlier run can be
-# carried as .gpu/gsplat/gsplat_cuda.so (OUT/gsplat_cuda.so of that run): it is used instead of building again.
+# STAGE: install build tests step lite realsize (default: all but realsize, in that order; install and build are
+# needed by the others in a fresh shell, and are quick when already done). A gsplat extension built by an earlier run
+# can be carried as .gpu/gsplat/gsplat_cuda.so (OUT/gsplat_cuda.so of that run): it is used instead of building again.
+# realsize trains configs/bench/real-size-gpu.yaml from the scene folders carried in .gpu/rs-scenes/ (the real-size
+# suite's built fern scene, scenes/llff-fern-images_8-motion-strong-h8-s0-r2-x1-estimated-l3 of its --out).
 set -uo pipefail
 
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
-OUT=${1:?usage: bash scripts/gpu_check.sh OUT [install|build|tests|step|lite ...]}
+OUT=${1:?usage: bash scripts/gpu_check.sh OUT [install|build|tests|step|lite|realsize ...]}
 shift
 STAGES=${*:-install build tests step lite}
 GPU=${GSMSDR_GPU_DIR:-$ROOT/.gpu}
@@ -209,5 +211,20 @@ print(f\"{r['psnr']:.2f} | {r['ssim']:.4f} | {r.get('lpips', float('nan')):.4f}\
     say "lite: $run exit $status in $wall s: $metrics"
   done
   result ""
+fi
+if has_stage realsize; then
+  # the real-size fern on the GPU from carried scene folders (.gpu/rs-scenes/<scene>, built on the CPU by the
+  # real-size suite: structure-from-motion is not repeated here); SIGINT at the time limit keeps the finished runs
+  # and writes the report of those
+  rs=$WORK/real-size-gpu
+  mkdir -p "$rs/scenes"
+  cp -r "$GPU"/rs-scenes/* "$rs/scenes/" 2>/dev/null || say "realsize: no carried scenes in $GPU/rs-scenes"
+  say "realsize: gsmsdr-bench suite --config real-size-gpu"
+  (cd "$WORK" && timeout -s INT "${GSMSDR_GPU_RS_TIMEOUT:-420}" gsmsdr-bench suite --config real-size-gpu \
+    --out "$rs" --no-progress >> "$LOG" 2>&1) || say "realsize: suite exit $?"
+  for f in results.md results.csv psnr_vs_time_fern-motion-504.png; do
+    [ -f "$rs/$f" ] && cp "$rs/$f" "$OUT/real-size-gpu-$f"
+  done
+  say "realsize: done"
 fi
 say "done: $RESULTS"
