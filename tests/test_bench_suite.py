@@ -49,12 +49,21 @@ def write_suite(tmp_path: Path, text: str, name: str = "suite.yaml") -> Path:
 # -- suite files -------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["quick", "full", "ablations", "ablations-quick", "accuracy", "accuracy-3000"])
+@pytest.mark.parametrize("name", ["quick", "full", "ablations", "ablations-quick", "accuracy", "accuracy-3000", "real-size-gpu"])
 def test_shipped_suites_load(name: str) -> None:
     suite = load_suite(find_suite_file(name))
     assert suite.name == name
     assert suite.runs()
     assert all(m in METHODS for m in suite.methods)
+
+
+def test_a_folder_named_like_a_suite_does_not_shadow_it(tmp_path: Path, monkeypatch) -> None:
+    """``gsmsdr-bench suite --config real-size --out real-size`` run again from the same folder: the name still
+    means the packaged suite, not the output folder."""
+    (tmp_path / "real-size").mkdir()
+    monkeypatch.chdir(tmp_path)
+    assert find_suite_file("real-size").is_file()
+    assert load_suite(find_suite_file("real-size")).name == "real-size"
 
 
 BAD_SUITES = [

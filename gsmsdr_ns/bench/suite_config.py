@@ -469,11 +469,12 @@ def load_suite(path: str | Path) -> Suite:
 
 def find_suite_file(name_or_path: str | Path) -> Path:
     """A suite file path, or a suite name: the packaged ``configs/bench/<name>.yaml`` (installed with the package),
-    else ``configs/bench/<name>.yaml`` under the working directory."""
+    else ``configs/bench/<name>.yaml`` under the working directory. A folder of that name (a suite's ``--out``, say)
+    is not a suite file."""
     from gsmsdr_ns.resources import config_file, config_names
 
     path = Path(name_or_path)
-    if path.suffix in (".yaml", ".yml") or path.exists():
+    if path.suffix in (".yaml", ".yml") or path.is_file():
         return path
     try:
         return config_file("bench", str(name_or_path))
