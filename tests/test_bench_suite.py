@@ -49,7 +49,10 @@ def write_suite(tmp_path: Path, text: str, name: str = "suite.yaml") -> Path:
 # -- suite files -------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["quick", "full", "ablations", "ablations-quick", "accuracy", "accuracy-3000", "real-size-gpu"])
+SHIPPED = ["quick", "full", "ablations", "ablations-quick", "accuracy", "accuracy-3000", "real-size-gpu"]
+
+
+@pytest.mark.parametrize("name", SHIPPED)
 def test_shipped_suites_load(name: str) -> None:
     suite = load_suite(find_suite_file(name))
     assert suite.name == name
