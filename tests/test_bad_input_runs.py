@@ -525,13 +525,21 @@ def test_ctrl_c_while_ns_train_sets_up_exits_130_with_one_line(tiny_scene: Path,
 
 
 def test_out_of_range_step_options_and_kernel_sizes_name_the_allowed_range():
-    from gsmsdr_ns.blur.hpko import MAX_KERNEL_SIZE, check_kernel_sizes
+    from gsmsdr_ns.blur.field import BlurFieldConfig
+    from gsmsdr_ns.blur.hpko import MAX_KERNEL_SIZE, MAX_VIEW_KERNEL_SIZE, check_kernel_sizes
     from gsmsdr_ns.plugin.trainer import check_step_options
 
+    per_pixel = rf"from 1 to {MAX_KERNEL_SIZE}; per-view kernels \(mode view\) up to {MAX_VIEW_KERNEL_SIZE}"
     for bad in ((5, 9, 999), (5, MAX_KERNEL_SIZE + 2), (4,)):
-        with pytest.raises(InputError, match=rf"odd integers from 1 to {MAX_KERNEL_SIZE} \(--pipeline.model."):
+        with pytest.raises(InputError, match=per_pixel + r" \(--pipeline.model."):
             check_kernel_sizes(bad)
     assert check_kernel_sizes((5, 9, MAX_KERNEL_SIZE)) == (5, 9, MAX_KERNEL_SIZE)
+    # one kernel per image (mode view) may be larger than a per-pixel one, up to its own limit
+    assert BlurFieldConfig(mode="view", kernel_sizes=(13, 25, 49)).max_kernel_size == MAX_VIEW_KERNEL_SIZE
+    with pytest.raises(InputError, match=per_pixel):
+        BlurFieldConfig(mode="full", kernel_sizes=(13, 25, 49))
+    with pytest.raises(InputError, match=rf"odd integers from 1 to {MAX_VIEW_KERNEL_SIZE} \(--pipeline.model."):
+        BlurFieldConfig(mode="view", kernel_sizes=(13, 25, MAX_VIEW_KERNEL_SIZE + 2))
     config = gsmsdr_trainer_config()
     check_step_options(config)
     for name, flag in (("max_num_iterations", "--max-num-iterations"), ("steps_per_save", "--steps-per-save")):

@@ -279,3 +279,38 @@ def test_the_degradation_model_blurs_through_the_fused_lens_as_through_its_kerne
     assert fused.lens_kernels is None and kept.lens_kernels is not None and kept.lens_kernels.shape[1] == 81
     torch.testing.assert_close(fused.image, kept.image, rtol=1e-5, atol=1e-7)
     assert not torch.allclose(fused.image, render, atol=1e-3)  # the lens did blur
+
+
+def test_per_view_kernels_beyond_the_per_pixel_limit_leave_the_lens_at_that_limit(monkeypatch):
+    """Mode view takes kernels up to MAX_VIEW_KERNEL_SIZE (one per image); the lens's disks stay per-pixel kernels,
+    so its window stays at MAX_KERNEL_SIZE however large the field's kernel, in training and in the preview."""
+    from gsmsdr_ns.blur.hpko import MAX_KERNEL_SIZE
+
+    profiles = [DegradationProfile(defocus=True, motion=True)] * 2
+    model = DegradationModel(profiles, BlurFieldConfig(mode="view", kernel_sizes=(13, 25, 49)))
+    with torch.no_grad():
+        model.thin_lens.log_aperture.fill_(math.log(400.0))  # disks far wider than any window
+    windows = []
+    lens_then_field = model._lens_then_field
+
+    def spy(*args, **kwargs):
+        windows.append(kwargs.get("lens_window", args[4] if len(args) > 4 else None))
+        return lens_then_field(*args, **kwargs)
+
+    monkeypatch.setattr(model, "_lens_then_field", spy)
+    plan = model.plan(view_id=0, render_downscale=1, step=10**6)
+    assert plan.thin_lens and plan.blur_scale is not None and plan.blur_scale.kernel_size == 49
+    rgb = torch.rand(40, 48, 3, requires_grad=True)
+    depth = _depth_ramp(40, 48)[0].permute(1, 2, 0)
+    degraded, aux = model(rgb, depth, plan)
+    assert windows == [MAX_KERNEL_SIZE]
+    assert degraded.shape == (40, 48, 3) and bool(torch.isfinite(degraded).all())
+    assert aux.kernel_mean is not None and bool(torch.isfinite(aux.kernel_mean).all())
+    degraded.sum().backward()
+    assert rgb.grad is not None and bool(torch.isfinite(rgb.grad).all())
+    view_logits = model.blur_field.heads.view_logits["1"]
+    assert view_logits.shape == (2, 49 * 49) and view_logits.grad is not None
+    model.set_train_camera_centres(torch.eye(4)[:3].expand(2, 3, 4).clone())
+    with torch.no_grad():
+        preview = model.preview(rgb.detach(), depth, torch.zeros(3), 10**6)
+    assert windows[1:] == [MAX_KERNEL_SIZE] and bool(torch.isfinite(preview["degraded"]).all())

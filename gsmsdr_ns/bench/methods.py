@@ -267,6 +267,14 @@ METHODS: Dict[str, MethodSpec] = {
             mode="view",
         ),  # fmt: skip
         _method(
+            "view-k49",
+            "per-view kernels, kernels 13/25/49",
+            "gsmsdr",
+            "mode view with kernels of 13 / 25 / 49 px (HPKO 1/4, 1/2, full resolution)",
+            mode="view",
+            kernel_sizes=(13, 25, 49),
+        ),  # fmt: skip
+        _method(
             "view-k33",
             "per-view kernels, kernels 9/17/33",
             "gsmsdr",

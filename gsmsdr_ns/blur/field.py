@@ -32,7 +32,7 @@ from torch import Tensor, nn
 from gsmsdr_ns.ops.grid_kernels import GridKernels, apply_grid_kernels, pool_to_grid, upsample_grid
 from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels, apply_pixel_kernels
 
-from .hpko import HPKOHeads, ViewKernels, check_kernel_sizes, hpko_scales
+from .hpko import MAX_KERNEL_SIZE, MAX_VIEW_KERNEL_SIZE, HPKOHeads, ViewKernels, check_kernel_sizes, hpko_scales
 from .maan import MCA, BAGSFeatures, ContextualFeatures, RGBDFeatures, check_bchw, check_view_ids
 
 __all__ = ["BlurFieldConfig", "BlurField", "BlurFieldDims", "BlurFieldModules"]
@@ -141,7 +141,7 @@ class BlurFieldConfig:
             raise ValueError(f"mode must be full, msd_only, re_only or view, got {self.mode!r}")
         if self.size not in _SIZE_PRESETS:
             raise ValueError(f"size must be one of {sorted(_SIZE_PRESETS)}, got {self.size!r}")
-        check_kernel_sizes(self.kernel_sizes)
+        check_kernel_sizes(self.kernel_sizes, self.max_kernel_size)
         dims = self.dims
         if dims.feature_dim < 2 or dims.mid_channels < 1 or dims.view_dim < 0 or dims.num_fans < 0:
             raise ValueError(f"invalid blur field widths {dims}")
@@ -155,6 +155,12 @@ class BlurFieldConfig:
             raise ValueError(f"feature_grid_cells must be an integer >= 0, got {self.feature_grid_cells}")
         if dims.pos_channels < 0 or dims.pos_channels % 4:
             raise ValueError(f"pos_channels must be a non-negative multiple of 4, got {dims.pos_channels}")
+
+    @property
+    def max_kernel_size(self) -> int:
+        """Largest kernel size allowed: per-pixel kernels hold K^2 weights per pixel, per-view ones K^2 per image."""
+        per_pixel = self.mode != "view" and self.pixel_kernels
+        return MAX_KERNEL_SIZE if per_pixel else MAX_VIEW_KERNEL_SIZE
 
     @property
     def dims(self) -> BlurFieldDims:

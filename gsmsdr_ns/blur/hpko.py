@@ -27,6 +27,8 @@ __all__ = [
     "ScaleInfo",
     "hpko_scales",
     "downsample_for_scale",
+    "MAX_KERNEL_SIZE",
+    "MAX_VIEW_KERNEL_SIZE",
     "check_kernel_sizes",
     "kernel_prior_logits",
     "kernel_upsample_matrix",
@@ -57,17 +59,24 @@ def hpko_scales(num_kernel_sizes: int, enabled: bool = True) -> Tuple[int, ...]:
 
 
 MAX_KERNEL_SIZE = 33
-"""Largest blur kernel (pixels across): twice the paper's 17. At 33 a 600x400 image's per-pixel kernels already hold
-261M weights; larger sizes only exhaust memory (999 asked for terabytes)."""
+"""Largest per-pixel blur kernel (pixels across): twice the paper's 17. At 33 a 600x400 image's per-pixel kernels
+already hold 261M weights; larger sizes only exhaust memory (999 asked for terabytes)."""
+
+MAX_VIEW_KERNEL_SIZE = 129
+"""Largest per-view blur kernel (a field without per-pixel kernels: mode ``view``): one K x K kernel per image,
+applied by an FFT, so its cost hardly grows with K; 129 px covers the shake of a 1300 px capture (about 2x the 33 px
+of a 600 px one, doubled again for margin)."""
 
 
-def check_kernel_sizes(kernel_sizes: Sequence[int]) -> Tuple[int, ...]:
-    """Validate coarse-to-fine kernel sizes: non-empty, odd, in [1, MAX_KERNEL_SIZE] and non-decreasing. Returns
-    them as a tuple; InputError (a ValueError) naming the allowed range otherwise."""
+def check_kernel_sizes(kernel_sizes: Sequence[int], max_size: int = MAX_KERNEL_SIZE) -> Tuple[int, ...]:
+    """Validate coarse-to-fine kernel sizes: non-empty, odd, in [1, ``max_size``] and non-decreasing. Returns them
+    as a tuple; InputError (a ValueError) naming the allowed range otherwise."""
     ks = tuple(int(k) for k in kernel_sizes)
-    if not ks or any(k < 1 or k % 2 == 0 or k > MAX_KERNEL_SIZE for k in ks):
+    if not ks or any(k < 1 or k % 2 == 0 or k > max_size for k in ks):
+        wider = max_size < MAX_VIEW_KERNEL_SIZE
+        per_view = f"; per-view kernels (mode view) up to {MAX_VIEW_KERNEL_SIZE}" if wider else ""
         raise InputError(
-            f"gsmsdr: blur kernel sizes must be odd integers from 1 to {MAX_KERNEL_SIZE} "
+            f"gsmsdr: blur kernel sizes must be odd integers from 1 to {max_size}{per_view} "
             f"(--pipeline.model.blur-field.kernel-sizes), got {list(kernel_sizes)}"
         )
     if any(b < a for a, b in zip(ks, ks[1:])):
@@ -100,7 +109,8 @@ class HPKOScheduler:
     """False: no coarse-to-fine HPKO, one full-resolution scale with the finest kernel size."""
 
     def __post_init__(self) -> None:
-        self.kernel_sizes = check_kernel_sizes(self.kernel_sizes)
+        # the field checks its own limit (per-pixel or per-view kernels)
+        self.kernel_sizes = check_kernel_sizes(self.kernel_sizes, MAX_VIEW_KERNEL_SIZE)
         if self.switch_steps is not None:
             self.switch_steps = tuple(int(s) for s in self.switch_steps)
             if len(self.switch_steps) != len(self.kernel_sizes) - 1 or any(
@@ -238,7 +248,7 @@ class HPKOHeads(nn.Module):
         pixel_kernels: bool = True,
     ):
         super().__init__()
-        ks = check_kernel_sizes(kernel_sizes)
+        ks = check_kernel_sizes(kernel_sizes, MAX_KERNEL_SIZE if pixel_kernels else MAX_VIEW_KERNEL_SIZE)
         if not 0.0 < mask_init < 1.0:
             raise ValueError(f"mask_init must be in (0, 1), got {mask_init}")
         self.scales = tuple(scales)  # coarse to fine
@@ -347,7 +357,7 @@ class ViewKernels(nn.Module):
         prior_sigma: float = 0.5,
     ):
         super().__init__()
-        ks = check_kernel_sizes(kernel_sizes)
+        ks = check_kernel_sizes(kernel_sizes, MAX_VIEW_KERNEL_SIZE)
         if num_views < 1:
             raise ValueError(f"num_views must be >= 1, got {num_views}")
         self.num_views = int(num_views)
