@@ -18,7 +18,9 @@ shaken fern at 458x333 (``configs/bench/real-size.yaml``, blur of 13-27 px) mode
 test PSNR with the preset's 17 px kernels (23.72 vs 23.71 dB) at 42 % of its training time; 25 px kernels, which
 cover that blur, gained 0.18 dB more (33 px: the same). On the generated 600x400 strong shake (16-32 px) each step
 17 -> 25 -> 33 px gained 0.18 dB (20.59, 20.77, 20.95 dB): kernels must cover the blur, and a larger one costs
-about the same (a kernel per image is applied by an FFT), so the preset takes the largest size (``MAX_KERNEL_SIZE``).
+about the same (a kernel per image is applied by an FFT). Beyond the blur it stops (49 px: 23.93 and 20.95 dB), so
+the preset keeps 33 px, the per-pixel limit (``MAX_KERNEL_SIZE``); mode ``view`` takes up to
+``MAX_VIEW_KERNEL_SIZE`` for larger captures (``--pipeline.model.blur-field.kernel-sizes 17 33 65`` at 1300 px).
 
 All train with :class:`GSMSDRTrainer` (nerfstudio's Trainer with atomic checkpoints and checked checkpoint loading).
 
