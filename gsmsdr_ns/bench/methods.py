@@ -130,6 +130,19 @@ def _method(name: str, label: str, base: str, description: str, sharp_data: bool
     return MethodSpec(name, label, base, tuple(sorted(options.items())), sharp_data, description)
 
 
+def _view_kernels_method(sizes: Tuple[int, int, int]) -> MethodSpec:
+    """``view-k<K>``: mode view with kernels of ``sizes`` px (HPKO 1/4, 1/2, full resolution; K the last)."""
+    slashed = "/".join(str(k) for k in sizes)
+    return _method(
+        f"view-k{sizes[-1]}",
+        f"per-view kernels, kernels {slashed}",
+        "gsmsdr",
+        f"mode view with kernels of {' / '.join(str(k) for k in sizes)} px (HPKO 1/4, 1/2, full resolution)",
+        mode="view",
+        kernel_sizes=sizes,
+    )
+
+
 METHODS: Dict[str, MethodSpec] = {
     m.name: m
     for m in (
@@ -266,30 +279,7 @@ METHODS: Dict[str, MethodSpec] = {
             "one kernel per training view (mask 1), no feature network (fast)",
             mode="view",
         ),  # fmt: skip
-        _method(
-            "view-k49",
-            "per-view kernels, kernels 13/25/49",
-            "gsmsdr",
-            "mode view with kernels of 13 / 25 / 49 px (HPKO 1/4, 1/2, full resolution)",
-            mode="view",
-            kernel_sizes=(13, 25, 49),
-        ),  # fmt: skip
-        _method(
-            "view-k33",
-            "per-view kernels, kernels 9/17/33",
-            "gsmsdr",
-            "mode view with kernels of 9 / 17 / 33 px (HPKO 1/4, 1/2, full resolution)",
-            mode="view",
-            kernel_sizes=(9, 17, 33),
-        ),  # fmt: skip
-        _method(
-            "view-k25",
-            "per-view kernels, kernels 7/13/25",
-            "gsmsdr",
-            "mode view with kernels of 7 / 13 / 25 px (HPKO 1/4, 1/2, full resolution)",
-            mode="view",
-            kernel_sizes=(7, 13, 25),
-        ),  # fmt: skip
+        *(_view_kernels_method(sizes) for sizes in ((13, 25, 49), (9, 17, 33), (7, 13, 25))),
         _method("-gaka", "-GAKA", "gsmsdr", "full without Global-Aware Kernel Attention", gaka=False),
         _method("-safm", "-SAFM", "gsmsdr", "full without the Spatial Adaptive Fusion Module", safm=False),
         _method("-mca", "-MCA", "gsmsdr", "full without the Multi-modal Context Adapter", mca=False),
