@@ -181,7 +181,7 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
                             "full-lens-unknown", "full-paper-loss", "full-lens-paper-loss",
                             "full-margin", "full-shake", "full-true",
                             "full-per-pixel", "full-fallback", "full-fallback-coarse", "full-anchor", "full-lens-early",
-                            "full-grid4k", "-view", "view", "view-k25", "view-k33",
+                            "full-grid4k", "-view", "view", "view-k25", "view-k33", "view-k49",
                             "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite", "gsmsdr-cpu", "sharp-degraded-poses",
                             "sharp"}  # fmt: skip
 
@@ -210,6 +210,7 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
         model("full-grid4k").blur_field.feature_grid_cells == 4096 and model("full").blur_field.feature_grid_cells == 0
     )
     assert model("view-k25").blur_field.kernel_sizes == (7, 13, 25)
+    assert model("view-k49").blur_field.kernel_sizes == (13, 25, 49) and model("view-k49").blur_field.mode == "view"
     assert model("view-k33").blur_field.kernel_sizes == (9, 17, 33) == model("gsmsdr-cpu").blur_field.kernel_sizes
     assert model("gsmsdr-cpu").blur_field.mode == "view"
     assert model("full").blur_field.view_kernels and model("full").blur_field.pixel_kernels
