@@ -290,27 +290,31 @@ def test_per_view_kernels_beyond_the_per_pixel_limit_leave_the_lens_at_that_limi
     model = DegradationModel(profiles, BlurFieldConfig(mode="view", kernel_sizes=(13, 25, 49)))
     with torch.no_grad():
         model.thin_lens.log_aperture.fill_(math.log(400.0))  # disks far wider than any window
-    windows = []
-    lens_then_field = model._lens_then_field
+    windows = []  # the window K of every lens evaluation (the blur, the loss's mean disk, the preview)
+    lens = model.thin_lens._lens
 
     def spy(*args, **kwargs):
-        windows.append(kwargs.get("lens_window", args[4] if len(args) > 4 else None))
-        return lens_then_field(*args, **kwargs)
+        radius, inverse_depth, K = lens(*args, **kwargs)
+        windows.append(K)
+        return radius, inverse_depth, K
 
-    monkeypatch.setattr(model, "_lens_then_field", spy)
+    monkeypatch.setattr(model.thin_lens, "_lens", spy)
     plan = model.plan(view_id=0, render_downscale=1, step=10**6)
     assert plan.thin_lens and plan.blur_scale is not None and plan.blur_scale.kernel_size == 49
     rgb = torch.rand(40, 48, 3, requires_grad=True)
     depth = _depth_ramp(40, 48)[0].permute(1, 2, 0)
     degraded, aux = model(rgb, depth, plan)
-    assert windows == [MAX_KERNEL_SIZE]
+    assert windows and all(K == MAX_KERNEL_SIZE for K in windows)
     assert degraded.shape == (40, 48, 3) and bool(torch.isfinite(degraded).all())
     assert aux.kernel_mean is not None and bool(torch.isfinite(aux.kernel_mean).all())
     degraded.sum().backward()
     assert rgb.grad is not None and bool(torch.isfinite(rgb.grad).all())
     view_logits = model.blur_field.heads.view_logits["1"]
     assert view_logits.shape == (2, 49 * 49) and view_logits.grad is not None
+    seen = len(windows)
     model.set_train_camera_centres(torch.eye(4)[:3].expand(2, 3, 4).clone())
     with torch.no_grad():
         preview = model.preview(rgb.detach(), depth, torch.zeros(3), 10**6)
-    assert windows[1:] == [MAX_KERNEL_SIZE] and bool(torch.isfinite(preview["degraded"]).all())
+    assert (
+        len(windows) == seen + 1 and windows[-1] == MAX_KERNEL_SIZE and bool(torch.isfinite(preview["degraded"]).all())
+    )

@@ -23,6 +23,7 @@ from torch import Tensor, nn
 from gsmsdr_ns.ops.disk_defocus import apply_occluding_defocus, apply_soft_disk_defocus
 from gsmsdr_ns.ops.disk_kernels import mean_soft_disk_kernel, occluding_disk_kernels, soft_disk_kernels
 
+from .hpko import MAX_KERNEL_SIZE
 from .maan import check_bchw, check_view_ids
 
 __all__ = ["thin_lens_radius", "lens_window", "ThinLensDefocus"]
@@ -143,6 +144,8 @@ class ThinLensDefocus(nn.Module):
         """(radius [B, 1, H, W] clamped to the window, inverse depth [B, 1, H, W], window K)."""
         if max_kernel_size < 1 or max_kernel_size % 2 == 0:
             raise ValueError(f"max_kernel_size must be a positive odd integer, got {max_kernel_size}")
+        # the disks are per-pixel kernels: a per-view field's larger kernel size does not widen them
+        max_kernel_size = min(max_kernel_size, MAX_KERNEL_SIZE)
         inverse_depth = self._inverse_depth(depth, view_ids)
         radius = self._radius(inverse_depth, view_ids.long(), pixel_scale).clamp(max=max_kernel_size // 2)
         return radius, inverse_depth, lens_window(radius, max_kernel_size, self.softness)
@@ -160,7 +163,7 @@ class ThinLensDefocus(nn.Module):
         to 1), or with ``image`` [B, C, H, W] the image through it (:meth:`blur`).
 
         K is :func:`lens_window` of the radii (the smallest odd window holding the largest disk on the CPU), at
-        most ``max_kernel_size`` (radii beyond it are truncated).
+        most ``max_kernel_size`` and the per-pixel limit ``MAX_KERNEL_SIZE`` (radii beyond it are truncated).
         """
         radius, inverse_depth, K = self._lens(depth, view_ids, max_kernel_size, pixel_scale)
         if image is not None:

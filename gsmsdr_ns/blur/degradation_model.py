@@ -30,7 +30,7 @@ from gsmsdr_ns.blur.defocus import ThinLensDefocus
 from gsmsdr_ns.blur.degradation_config import DegradationConfig
 from gsmsdr_ns.blur.fallback import ExplanationGate, photo_errors
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig, blend
-from gsmsdr_ns.blur.hpko import MAX_KERNEL_SIZE, HPKOScheduler
+from gsmsdr_ns.blur.hpko import HPKOScheduler
 from gsmsdr_ns.blur.losses import DegradationAux, degradation_losses, kernel_centres, mean_blend_kernel
 from gsmsdr_ns.blur.maan import host_checked_view_ids
 from gsmsdr_ns.blur.plan import DegradationPlan, crop_margin
@@ -325,14 +325,12 @@ class DegradationModel(nn.Module):
             image = timed("kernels", self.camera_shake, image, K, view_ids, centred, linear_light)
         if plan.blur_scale is not None:
             assert self.blur_field is not None
-            # the lens's disks are per-pixel kernels: a per-view field's larger kernels do not widen them
-            lens_window = min(plan.blur_scale.kernel_size, MAX_KERNEL_SIZE)
             stages = self._lens_then_field(
                 image,
                 None if depth is None else _bchw(depth),
                 view_ids,
                 plan.blur_scale.scale,
-                lens_window=lens_window,
+                lens_window=plan.blur_scale.kernel_size,
                 lens_pixel_scale=1.0 / plan.render_downscale,
                 lens=plan.thin_lens,
                 field=plan.blur_field,
@@ -342,7 +340,7 @@ class DegradationModel(nn.Module):
             lens_mean = None
             if plan.thin_lens and plan.deconvolved_loss and self.config.deconvolved_loss_on_lens:
                 assert self.thin_lens is not None and depth is not None
-                lens_args = (view_ids, lens_window, 1.0 / plan.render_downscale)
+                lens_args = (view_ids, plan.blur_scale.kernel_size, 1.0 / plan.render_downscale)
                 lens_mean = self.thin_lens.mean_kernel(_bchw(depth), *lens_args)
             if stages.kernels is not None:
                 assert stages.mask is not None
@@ -449,8 +447,7 @@ class DegradationModel(nn.Module):
         def enlarge(x: Tensor) -> Tensor:
             return x if d == 1 else F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False)
 
-        # the lens's window at the preview's grid, odd (at most the per-pixel limit, as in training)
-        window = (min(info.kernel_size, MAX_KERNEL_SIZE) * info.downsample // d) | 1
+        window = (info.kernel_size * info.downsample // d) | 1  # the scale's window at the preview's grid, odd
         stages = self._lens_then_field(
             low, low_depth, view_ids, info.scale, window, 1.0 / d, lens=lens, field=not lens_alone,
             field_depth=field_depth, keep_lens_kernels=True,
