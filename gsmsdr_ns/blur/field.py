@@ -32,7 +32,7 @@ from torch import Tensor, nn
 from gsmsdr_ns.ops.grid_kernels import GridKernels, apply_grid_kernels, pool_to_grid, upsample_grid
 from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels, apply_pixel_kernels
 
-from .hpko import MAX_KERNEL_SIZE, MAX_VIEW_KERNEL_SIZE, HPKOHeads, ViewKernels, check_kernel_sizes, hpko_scales
+from .hpko import HPKOHeads, ViewKernels, check_kernel_sizes, hpko_scales, kernel_size_limit
 from .maan import MCA, BAGSFeatures, ContextualFeatures, RGBDFeatures, check_bchw, check_view_ids
 
 __all__ = ["BlurFieldConfig", "BlurField", "BlurFieldDims", "BlurFieldModules"]
@@ -158,9 +158,9 @@ class BlurFieldConfig:
 
     @property
     def max_kernel_size(self) -> int:
-        """Largest kernel size allowed: per-pixel kernels hold K^2 weights per pixel, per-view ones K^2 per image."""
-        per_pixel = self.mode != "view" and self.pixel_kernels
-        return MAX_KERNEL_SIZE if per_pixel else MAX_VIEW_KERNEL_SIZE
+        """Largest kernel size allowed (:func:`~gsmsdr_ns.blur.hpko.kernel_size_limit`): mode ``view`` has no
+        per-pixel kernels."""
+        return kernel_size_limit(self.mode != "view" and self.pixel_kernels)
 
     @property
     def dims(self) -> BlurFieldDims:

@@ -29,6 +29,7 @@ __all__ = [
     "downsample_for_scale",
     "MAX_KERNEL_SIZE",
     "MAX_VIEW_KERNEL_SIZE",
+    "kernel_size_limit",
     "check_kernel_sizes",
     "kernel_prior_logits",
     "kernel_upsample_matrix",
@@ -66,6 +67,12 @@ MAX_VIEW_KERNEL_SIZE = 129
 """Largest per-view blur kernel (a field without per-pixel kernels: mode ``view``): one K x K kernel per image,
 applied by an FFT, so its cost hardly grows with K; 129 px covers the shake of a 1300 px capture (about 2x the 33 px
 of a 600 px one, doubled again for margin)."""
+
+
+def kernel_size_limit(pixel_kernels: bool) -> int:
+    """Largest kernel size allowed: ``MAX_KERNEL_SIZE`` where kernels are predicted per pixel (K^2 weights per
+    pixel), ``MAX_VIEW_KERNEL_SIZE`` where there is one kernel per image."""
+    return MAX_KERNEL_SIZE if pixel_kernels else MAX_VIEW_KERNEL_SIZE
 
 
 def check_kernel_sizes(kernel_sizes: Sequence[int], max_size: int = MAX_KERNEL_SIZE) -> Tuple[int, ...]:
@@ -248,7 +255,7 @@ class HPKOHeads(nn.Module):
         pixel_kernels: bool = True,
     ):
         super().__init__()
-        ks = check_kernel_sizes(kernel_sizes, MAX_KERNEL_SIZE if pixel_kernels else MAX_VIEW_KERNEL_SIZE)
+        ks = check_kernel_sizes(kernel_sizes, kernel_size_limit(pixel_kernels))
         if not 0.0 < mask_init < 1.0:
             raise ValueError(f"mask_init must be in (0, 1), got {mask_init}")
         self.scales = tuple(scales)  # coarse to fine
@@ -357,7 +364,7 @@ class ViewKernels(nn.Module):
         prior_sigma: float = 0.5,
     ):
         super().__init__()
-        ks = check_kernel_sizes(kernel_sizes, MAX_VIEW_KERNEL_SIZE)
+        ks = check_kernel_sizes(kernel_sizes, kernel_size_limit(pixel_kernels=False))
         if num_views < 1:
             raise ValueError(f"num_views must be >= 1, got {num_views}")
         self.num_views = int(num_views)
