@@ -2,8 +2,10 @@
 (`ops.pixel_kernels_cpp`).
 
 Each extension is one .cpp file registering its ops with TORCH_LIBRARY. It is built through
-torch.utils.cpp_extension.load, like gsplat's CUDA code, into ~/.cache/gsmsdr_ns/torch_extensions/<torch version>/<name>
-(or $TORCH_EXTENSIONS_DIR/<name>), at most once per process; torch's file lock serialises concurrent builds. A
+torch.utils.cpp_extension.load, like gsplat's CUDA code, into
+~/.cache/gsmsdr_ns/torch_extensions/<torch version>/<name>_<isa> (or $TORCH_EXTENSIONS_DIR/<name>_<isa>), at most once
+per process; torch's file lock serialises concurrent builds. <isa> is the vector instruction set the build targets,
+the one torch's own CPU kernels use on this machine (`cpu_isa`): machines sharing a home folder keep a build each. A
 failed build is not retried in the same process, and `available()` / `error()` never raise, so callers can fall back
 to their PyTorch twin with a clear reason (`choose_backend` does that, warning once; `backend_for` also sends
 tensors the C++ kernel does not take to the twin).
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import os
+import platform
 import shlex
 import shutil
 import sys
@@ -59,6 +62,30 @@ def ninja_dir() -> Optional[str]:
         return None
 
 
+# Compiler flags per instruction-set level (x86-64 only): the kernels' inner loops are 64-byte vector blocks, one
+# AVX-512 register, two AVX2 ones, four SSE2 ones (the x86-64 baseline, "generic").
+ISA_FLAGS = {
+    "avx512": ["-mavx2", "-mfma", "-mavx512f", "-mavx512bw", "-mavx512dq", "-mavx512vl"],
+    "avx2": ["-mavx2", "-mfma"],
+    "generic": [],
+}
+
+
+def cpu_isa() -> str:
+    """The instruction-set level the extensions are built for: "avx512", "avx2" or "generic".
+
+    It follows ``torch.backends.cpu.get_cpu_capability()``, the level torch's own CPU kernels run at on this machine
+    (``ATEN_CPU_CAPABILITY=avx2`` or ``default`` lowers both); anything but x86-64 is "generic".
+    """
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return "generic"
+    try:
+        capability = torch.backends.cpu.get_cpu_capability().lower()
+    except Exception:  # an old or unusual torch build: the baseline is always safe
+        return "generic"
+    return capability if capability in ISA_FLAGS else "generic"
+
+
 def _tail(text: object, lines: int = 15) -> str:
     return "\n".join(str(text).strip().splitlines()[-lines:])
 
@@ -79,7 +106,7 @@ class CppExtension:
     """One lazily built C++ CPU extension and the op namespace it registers.
 
     Args:
-        name: extension (and build directory) name, e.g. "gsmsdr_rasterize_cpu".
+        name: extension name, e.g. "gsmsdr_rasterize_cpu"; built as <name>_<isa> (see `cpu_isa`).
         source: the .cpp file.
         namespace: the TORCH_LIBRARY namespace its ops live in, returned as `torch.ops.<namespace>`.
         what: what it is, for messages ("C++ rasterizer").
@@ -96,9 +123,13 @@ class CppExtension:
         self._attempted = False
         self._fallback_warned = False
 
+    def build_name(self) -> str:
+        """<name>_<isa>: the extension built for this machine's instruction set."""
+        return f"{self.name}_{cpu_isa()}"
+
     def build_directory(self) -> Path:
-        """$TORCH_EXTENSIONS_DIR/<name> or ~/.cache/gsmsdr_ns/torch_extensions/<torch version>/<name>."""
-        return extensions_root() / self.name
+        """$TORCH_EXTENSIONS_DIR/<name>_<isa> or ~/.cache/gsmsdr_ns/torch_extensions/<torch version>/<name>_<isa>."""
+        return extensions_root() / self.build_name()
 
     def _build(self):
         """Compile and load the extension; returns torch.ops.<namespace> or raises RuntimeError with the reason."""
@@ -123,9 +154,9 @@ class CppExtension:
             os.environ["PATH"] = ninja + (os.pathsep + old_path if old_path else "")
         try:
             load(
-                name=self.name,
+                name=self.build_name(),
                 sources=[str(self.source)],
-                extra_cflags=["-O3", "-fopenmp"],
+                extra_cflags=["-O3", "-fopenmp", *ISA_FLAGS[cpu_isa()]],
                 extra_ldflags=["-fopenmp"],
                 build_directory=str(build_dir),
                 is_python_module=False,  # ops are registered with TORCH_LIBRARY

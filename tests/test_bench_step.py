@@ -36,11 +36,13 @@ def test_the_command_times_every_method_and_writes_its_table(motion_scene, tmp_p
     assert list(rows[0]) == list(COLUMNS)
     for one, two in zip(rows[:2], rows[2:]):  # each method against its own 1-thread step, ratios per thread count
         assert float(one["speedup_vs_1_thread"]) == 1.0
-        assert float(two["speedup_vs_1_thread"]) == pytest.approx(float(one["step_ms"]) / float(two["step_ms"]))
-        assert float(two["ratio_to_first"]) == pytest.approx(float(two["step_ms"]) / float(rows[2]["step_ms"]))
+        assert float(two["speedup_vs_1_thread"]) == pytest.approx(float(one["median_ms"]) / float(two["median_ms"]))
+        assert float(two["ratio_to_first"]) == pytest.approx(float(two["median_ms"]) / float(rows[2]["median_ms"]))
     plain, full = rows[:2]
     assert float(plain["ratio_to_first"]) == 1.0
-    assert float(full["ratio_to_first"]) == pytest.approx(float(full["step_ms"]) / float(plain["step_ms"]))
+    assert float(full["ratio_to_first"]) == pytest.approx(float(full["median_ms"]) / float(plain["median_ms"]))
+    for r in rows:  # one round: the median of one round is the mean
+        assert r["rounds"] == "1" and float(r["median_ms"]) == pytest.approx(float(r["step_ms"]))
     assert all(float(r["step_ms"]) > 0 for r in rows)
     # 5 training views, all motion-blurred: plain models none of them, full every one
     assert plain["blurred_views"] == "0/5" and full["blurred_views"] == "5/5"
@@ -48,6 +50,32 @@ def test_the_command_times_every_method_and_writes_its_table(motion_scene, tmp_p
     assert "blur_field=0.00" in plain["breakdown_ms"] and "blur_field=0.00" not in full["breakdown_ms"]
     table = (out / "results.md").read_text()
     assert "| plain | " in table and "| full | " in table and "Time breakdown" in table
+
+
+def test_rounds_split_the_timed_steps_and_the_methods_take_turns(motion_scene, tmp_path, monkeypatch):
+    from gsmsdr_ns.bench import step_cost
+    from gsmsdr_ns.bench.training import InProcessRun
+
+    order = []
+    train = InProcessRun.train
+
+    def recording_train(self, num_steps):
+        order.append((self.trainer.config.experiment_name, num_steps))
+        return train(self, num_steps)
+
+    monkeypatch.setattr(InProcessRun, "train", recording_train)
+    specs = [StepCostSpec(m, motion_scene, warmup=1, steps=3, threads=1) for m in ("plain", "full")]
+    rows = step_cost.run_step_cost(specs, tmp_path / "work", rounds=2)
+    # warm-ups, then rounds of 2 and 1 timed steps in turn
+    assert order == [("step-plain", 1), ("step-full", 1), ("step-plain", 2), ("step-full", 2), ("step-plain", 1),
+                     ("step-full", 1)]  # fmt: skip
+    for r in rows:
+        assert r["rounds"] == 2 and r["steps"] == 3 and float(r["median_ms"]) > 0
+    assert rows[1]["ratio_to_first"] == pytest.approx(rows[1]["median_ms"] / rows[0]["median_ms"])
+    assert step_cost._round_sizes(10, 4) == [3, 3, 2, 2] and step_cost._round_sizes(2, 5) == [1, 1]
+    with pytest.raises(ValueError, match="share a thread count"):
+        step_cost.measure_step_costs([StepCostSpec("plain", motion_scene, threads=1),
+                                      StepCostSpec("full", motion_scene, threads=2)], tmp_path)  # fmt: skip
 
 
 def test_no_estimate_trains_images_without_records_with_the_blur_field(motion_scene, tmp_path):

@@ -21,9 +21,10 @@ needs_cpp = pytest.mark.skipif(not grid_kernels_cpp_available(), reason="no C++ 
 
 # (H, W, factor, K): factors that divide the image and factors that leave a partial last cell, one-row images, and a
 # grid of one cell (one kernel for the whole image, mode "view"), and kernels spanning several grid rows (the C++
-# op keeps the resampled grid rows a window of pixel rows reads)
+# op keeps the resampled grid rows a window of pixel rows reads); rows of several 64-byte column blocks with a partial
+# last one (the C++ op's inner loops)
 CASES = [(13, 17, 4, 5), (12, 16, 2, 3), (7, 9, 3, 5), (1, 5, 2, 3), (6, 6, 2, 1), (9, 4, 5, 3), (5, 7, 8, 5),
-         (37, 29, 3, 9)]  # fmt: skip
+         (37, 29, 3, 9), (11, 70, 4, 7)]  # fmt: skip
 
 
 def reference(image: torch.Tensor, grid: torch.Tensor, factor: int) -> torch.Tensor:
@@ -46,6 +47,22 @@ def test_matches_dense_reference_in_float64(backend, H, W, factor, K):
     got = torch.autograd.grad(out, (image, grid), grad_out)
     want = torch.autograd.grad(ref, (image, grid), grad_out)
     for g, w in zip(got, want):
+        torch.testing.assert_close(g, w, rtol=1e-11, atol=1e-11)
+
+
+@needs_cpp
+@pytest.mark.parametrize("channels", [1, 2, 4])
+def test_cpp_matches_the_reference_for_any_channel_count(channels):
+    """Three channels (RGB) take the C++ op's unrolled path; any other count its per-channel one."""
+    gen = torch.Generator().manual_seed(channels)
+    image = torch.rand(2, channels, 19, 35, dtype=torch.float64, generator=gen, requires_grad=True)
+    grid = torch.rand(2, 49, *grid_size((19, 35), 4), dtype=torch.float64, generator=gen, requires_grad=True)
+    out = apply_grid_kernels(image, grid, 4, backend="cpp")
+    ref = reference(image, grid, 4)
+    torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)
+    grad_out = torch.rand(out.shape, dtype=torch.float64, generator=gen)
+    got = torch.autograd.grad(out, (image, grid), grad_out)
+    for g, w in zip(got, torch.autograd.grad(ref, (image, grid), grad_out)):
         torch.testing.assert_close(g, w, rtol=1e-11, atol=1e-11)
 
 

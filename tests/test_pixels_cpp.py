@@ -618,6 +618,41 @@ def test_missing_compiler_gives_clear_message(tmp_path):
     assert "Traceback" not in proc.stderr
 
 
+@pytest.mark.slow  # builds an extension (about 30 s)
+def test_extensions_build_for_the_cpu_instruction_set_and_the_baseline_build_agrees(tmp_path):
+    """Builds are kept per instruction-set level; ``ATEN_CPU_CAPABILITY=default`` (what torch's own kernels then use
+    too) builds the x86-64 baseline, whose blocks of four SSE registers give the same blur as the PyTorch twin."""
+    from gsmsdr_ns._cpp_ext import ISA_FLAGS, cpu_isa
+    from gsmsdr_ns.ops.grid_kernels import EXTENSION
+
+    assert cpu_isa() in ISA_FLAGS
+    assert EXTENSION.build_directory().name == f"gsmsdr_grid_kernels_cpu_{cpu_isa()}"
+    code = (
+        "import torch\n"
+        "from gsmsdr_ns._cpp_ext import cpu_isa\n"
+        "from gsmsdr_ns.ops.grid_kernels import EXTENSION, apply_grid_kernels, grid_size\n"
+        "print('ISA', cpu_isa(), EXTENSION.build_directory().name)\n"
+        "g = torch.Generator().manual_seed(0)\n"
+        "image = torch.rand(1, 3, 21, 37, generator=g, requires_grad=True)\n"
+        "grid = torch.rand(1, 81, *grid_size((21, 37), 4), generator=g, requires_grad=True)\n"
+        "outs = [apply_grid_kernels(image, grid, 4, backend=b) for b in ('cpp', 'torch')]\n"
+        "grads = [torch.autograd.grad(o.square().sum(), (image, grid)) for o in outs]\n"
+        "err = max((outs[0] - outs[1]).abs().max().item(),\n"
+        "          *[(a - b).abs().max().item() / b.abs().max().item() for a, b in zip(*grads)])\n"
+        "print('ERR', err)\n"
+    )
+    env = dict(os.environ, ATEN_CPU_CAPABILITY="default", TORCH_EXTENSIONS_DIR=str(tmp_path / "ext"))
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    proc = subprocess.run(
+        [sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=600
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "ISA generic gsmsdr_grid_kernels_cpu_generic" in proc.stdout, proc.stdout
+    assert (tmp_path / "ext" / "gsmsdr_grid_kernels_cpu_generic").is_dir()
+    err = float(proc.stdout.split("ERR")[1])
+    assert err < 1e-5, proc.stdout
+
+
 def test_unsorted_offsets_raise_value_error():
     scene = make_scene(seed=0, C=2, N=6, W=12, H=10, tile_size=4)
     n = scene["flatten_ids"].numel()

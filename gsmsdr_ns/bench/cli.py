@@ -146,6 +146,9 @@ class StepBench:
     threads: Tuple[int, ...] = (0,)
     """Intra-op thread counts to measure each method at (torch's and our C++ kernels'); 0: torch's default. With 1
     among them, the table gives each method's speed-up over its 1-thread step."""
+    rounds: int = 1
+    """Rounds the timed steps are split into: the methods of a scene and thread count take turns each round, and the
+    table adds the median over the rounds of a round's time per step (on a shared or unsteady machine, 8 rounds)."""
     out: Path = Path("bench-results") / "step"
     """Folder of results.md and results.csv."""
     work_dir: Path = Path(tempfile.gettempdir()) / "gsmsdr-bench-step"
@@ -159,15 +162,22 @@ class StepBench:
 
         if any(n < 0 for n in self.threads):
             raise SystemExit(f"gsmsdr-bench step: --threads must be >= 0 (0: torch's default), got {self.threads}")
+        if self.rounds < 1:
+            raise SystemExit(f"gsmsdr-bench step: --rounds must be >= 1, got {self.rounds}")
         specs = [StepCostSpec(m, d, self.warmup, self.steps, self.estimate, breakdown_steps=self.breakdown_steps,
                               threads=n)
                  for d in self.data for n in sorted(self.threads) for m in self.methods]  # fmt: skip
-        rows = run_step_cost(specs, self.work_dir, log=print)
+        rows = run_step_cost(specs, self.work_dir, log=print, rounds=self.rounds)
         command = "gsmsdr-bench " + " ".join(shlex.quote(a) for a in _invocation_args())
         header = (
             f"# Training-step cost per method\n\nCommand: `{command}`\n\nMachine: {describe_machine(machine_info())}"
             f"\n\n{self.warmup} untimed warm-up steps, then {self.steps} timed steps per method at full "
-            "resolution with the blur field on from step 0; the device synchronised only around the timed steps."
+            "resolution with the blur field on from step 0; the device synchronised only around the timed steps"
+            + (
+                f", split into {self.rounds} rounds in which the methods of a scene and thread count take turns."
+                if self.rounds > 1
+                else "."
+            )
         )
         print(format_table(rows, header))
         print("wrote " + ", ".join(str(p) for p in write_results(self.out, rows, header)))

@@ -97,13 +97,34 @@ template <typename S> struct Columns {
     }
 };
 
+// A block of columns the inner loops handle at once, as one GCC/Clang vector (64 bytes: one AVX-512 register, two
+// AVX2 or four SSE registers), so that each block keeps its sums in registers across all K*K taps.
+template <typename S> struct Block {
+    typedef S type __attribute__((vector_size(64)));
+    static constexpr int64_t n = 64 / sizeof(S);
+    static type load(const S *p) {
+        type v;
+        __builtin_memcpy(&v, p, sizeof v);
+        return v;
+    }
+    static void store(S *p, type v, int64_t count) {
+        S tmp[n];
+        __builtin_memcpy(tmp, &v, sizeof v);
+        std::copy(tmp, tmp + count, p);
+    }
+};
+// Slack past a row that block loads may read: the widest block (float: 16 values).
+constexpr int64_t BX = 16;
+
 // Grid rows resampled to the pixel columns, built when a thread first needs them and kept for the rows after:
 // row(b, gy)[k * W + x] = tap k of grid row gy, linearly interpolated to pixel column x. Direct-mapped on gy modulo
 // the slot count, so that the grid rows a run of consecutive pixel rows reads stay cached (each grid row is then
-// resampled about once per thread, instead of once per pixel row that reads it).
+// resampled about once per thread, instead of once per pixel row that reads it). The loops below read up to
+// 2p + 2 BX values past a tap's row (into the next tap, slot or the zeroed tail): every value read is finite, and
+// the products those lanes feed are discarded or multiplied by zero.
 template <typename S> struct ResampledRows {
     ResampledRows(const Dims &s, const Columns<S> &cols, int64_t slots)
-        : s(s), cols(cols), slots(slots), tag(slots, -1), data(slots * s.K * s.K * s.W) {}
+        : s(s), cols(cols), slots(slots), tag(slots, -1), data(slots * s.K * s.K * s.W + 2 * s.p + 2 * BX, S(0)) {}
 
     const S *row(const S *grid, int64_t b, int64_t gy) {
         const int64_t slot = gy % slots;
@@ -134,69 +155,145 @@ template <typename S> struct ResampledRows {
 // stencil's interpolation.
 inline int64_t window_slots(const Dims &s) { return (s.K + s.r - 1) / s.r + 3; }
 
-// dst[x] = the bilinear weight of the tap whose resampled grid rows are a (stencil lo) and b (hi), at pixel row
-// stencil weight ty
-template <typename S>
-inline void weight_row(S *__restrict__ dst, const S *__restrict__ a, const S *__restrict__ b, S ty, int64_t W) {
-    for (int64_t x = 0; x < W; ++x) dst[x] = a[x] + ty * (b[x] - a[x]);
+// The image's rows padded for unclamped reads: replicate(b, c, y)[q] = image[b, c, y, clamp(q - p, 0, W - 1)] for
+// q in [0, W + 2p + BX) (a tap at column offset j reads q = x + j), and zeros(b, c, y)[q] = image[b, c, y, q - K]
+// for q - K in [0, W), else 0, for q in [0, W + 2K + 2 BX) (a product with a zero is no contribution).
+template <typename S> struct PaddedRows {
+    PaddedRows(const S *src, const Dims &s, bool replicate)
+        : s(s), off(replicate ? 0 : s.K), len(replicate ? s.W + 2 * s.p + BX : s.W + 2 * s.K + 2 * BX),
+          data(s.B * s.C * s.H * len, S(0)) {
+        at::parallel_for(0, s.B * s.C * s.H, 64, [&](int64_t begin, int64_t end) {
+            for (int64_t row = begin; row < end; ++row) {
+                const S *in = src + row * s.W;
+                S *out = data.data() + row * len;
+                if (replicate) {
+                    for (int64_t q = 0; q < len; ++q)
+                        out[q] = in[std::min<int64_t>(std::max<int64_t>(q - s.p, 0), s.W - 1)];
+                } else {
+                    std::copy(in, in + s.W, out + off);
+                }
+            }
+        });
+    }
+    // Row (b, c, y), shifted so that index x is image column x - p (replicate) or x (zeros).
+    const S *row(int64_t b, int64_t c, int64_t y) const { return data.data() + ((b * s.C + c) * s.H + y) * len + off; }
+
+  private:
+    const Dims &s;
+    const int64_t off, len;
+    std::vector<S> data;
+};
+
+// Output row (b, y), channels [c0, c0 + NC): out[c, x] = sum_k w[k](y, x) * image[c, clamp(y + i - p), clamp(x + j
+// - p)], the tap weights interpolated between the resampled grid rows lo / hi at row weight ty.
+template <typename S, int NC>
+void forward_row(S *out_row, const S *lo_rows, const S *hi_rows, S ty, const PaddedRows<S> &pad, int64_t b,
+                 int64_t c0, int64_t y, const Dims &s) {
+    std::vector<const S *> src(s.K * NC);
+    for (int64_t i = 0; i < s.K; ++i)
+        for (int c = 0; c < NC; ++c) src[i * NC + c] = pad.row(b, c0 + c, clamp_row(y + i - s.p, s.H));
+    using V = typename Block<S>::type;
+    constexpr int64_t L = Block<S>::n;
+    for (int64_t xb = 0; xb < s.W; xb += L) {
+        V acc[NC] = {};
+        for (int64_t i = 0; i < s.K; ++i) {
+            for (int64_t j = 0; j < s.K; ++j) {
+                const int64_t k = (i * s.K + j) * s.W + xb;
+                const V a = Block<S>::load(lo_rows + k);
+                const V w = a + ty * (Block<S>::load(hi_rows + k) - a);
+                for (int c = 0; c < NC; ++c) acc[c] += w * Block<S>::load(src[i * NC + c] + xb + j);
+            }
+        }
+        const int64_t n = std::min<int64_t>(L, s.W - xb);
+        for (int c = 0; c < NC; ++c) Block<S>::store(out_row + c * s.HW + xb, acc[c], n);
+    }
 }
 
 template <typename S>
-void forward_rows(const S *img, const S *grid, S *out, const Dims &s, int64_t begin, int64_t end) {
+void forward_rows(const S *grid, const PaddedRows<S> &pad, S *out, const Dims &s, int64_t begin, int64_t end) {
     const Columns<S> cols(s);
     ResampledRows<S> rows(s, cols, 2);
-    std::vector<S> wrow(s.W);
     for (int64_t row = begin; row < end; ++row) {
         const int64_t b = row / s.H, y = row % s.H;
         const Stencil sy = stencil(y, s.r, s.h);
         const S ty = static_cast<S>(sy.t);
         const S *lo_rows = rows.row(grid, b, sy.lo), *hi_rows = rows.row(grid, b, sy.hi);
-        const S *img_b = img + b * s.C * s.HW;
         S *out_row = out + b * s.C * s.HW + y * s.W;
-        for (int64_t c = 0; c < s.C; ++c) std::fill(out_row + c * s.HW, out_row + c * s.HW + s.W, S(0));
-        for (int64_t i = 0; i < s.K; ++i) {
-            const int64_t ys = clamp_row(y + i - s.p, s.H);
-            for (int64_t j = 0; j < s.K; ++j) {
-                const int64_t d = j - s.p;
-                int64_t lo, hi;
-                interior(s.W, d, lo, hi);
-                const int64_t k = (i * s.K + j) * s.W;
-                weight_row(wrow.data(), lo_rows + k, hi_rows + k, ty, s.W);
-                for (int64_t c = 0; c < s.C; ++c)
-                    shifted_fma(out_row + c * s.HW, wrow.data(), img_b + c * s.HW + ys * s.W, s.W, d, lo, hi);
-            }
+        if (s.C == 3) {
+            forward_row<S, 3>(out_row, lo_rows, hi_rows, ty, pad, b, 0, y, s);
+        } else {
+            for (int64_t c = 0; c < s.C; ++c) forward_row<S, 1>(out_row + c * s.HW, lo_rows, hi_rows, ty, pad, b, c, y, s);
         }
     }
 }
 
+// One output row y that reads source row ys through kernel row i: its interpolated tap rows and gradient rows.
+template <typename S> struct ReadingRow {
+    const S *lo, *hi;  // resampled grid rows of tap (i, 0)
+    S ty;
+    int64_t y;
+};
+
+// Source row (b, ys), channels [c0, c0 + NC), in padded columns X = x + j (x the output column, j the tap's
+// column): acc[c, X] = sum over the reading rows and j of w[i, j](y, X - j) * g[c, y, X - j], then folded to the
+// image columns (X - p clamped to [0, W - 1], the replicate border's adjoint).
+template <typename S, int NC>
+void grad_image_row(S *gi_row, const std::vector<ReadingRow<S>> &reading, const PaddedRows<S> &gz, int64_t b,
+                    int64_t c0, std::vector<S> &acc_row, const Dims &s) {
+    const int64_t Wx = s.W + 2 * s.p;
+    std::vector<const S *> grows(reading.size() * NC);
+    for (size_t n = 0; n < reading.size(); ++n)
+        for (int c = 0; c < NC; ++c) grows[n * NC + c] = gz.row(b, c0 + c, reading[n].y);
+    using V = typename Block<S>::type;
+    constexpr int64_t L = Block<S>::n;
+    for (int64_t Xb = 0; Xb < Wx; Xb += L) {
+        V acc[NC] = {};
+        for (size_t n = 0; n < reading.size(); ++n) {
+            const ReadingRow<S> &rr = reading[n];
+            for (int64_t j = 0; j < s.K; ++j) {
+                const int64_t k = j * s.W + Xb - j;
+                const V a = Block<S>::load(rr.lo + k);
+                const V w = a + rr.ty * (Block<S>::load(rr.hi + k) - a);
+                for (int c = 0; c < NC; ++c) acc[c] += w * Block<S>::load(grows[n * NC + c] + Xb - j);
+            }
+        }
+        const int64_t n = std::min<int64_t>(L, Wx - Xb);
+        for (int c = 0; c < NC; ++c) Block<S>::store(acc_row.data() + c * Wx + Xb, acc[c], n);
+    }
+    for (int c = 0; c < NC; ++c) {
+        const S *a = acc_row.data() + c * Wx;
+        S *dst = gi_row + c * s.HW;
+        for (int64_t x = 0; x < s.W; ++x) dst[x] = a[x + s.p];
+        for (int64_t X = 0; X < s.p; ++X) dst[0] += a[X];
+        for (int64_t X = s.W + s.p; X < Wx; ++X) dst[s.W - 1] += a[X];
+    }
+}
+
 template <typename S>
-void grad_image_rows(const S *grid, const S *g, S *gi, const Dims &s, int64_t begin, int64_t end) {
+void grad_image_rows(const S *grid, const PaddedRows<S> &gz, S *gi, const Dims &s, int64_t begin, int64_t end) {
     const Columns<S> cols(s);
     ResampledRows<S> rows(s, cols, window_slots(s));
-    std::vector<S> wrow(s.W);
+    std::vector<ReadingRow<S>> reading;
+    std::vector<S> acc_row(3 * (s.W + 2 * s.p));
     for (int64_t row = begin; row < end; ++row) {
         const int64_t b = row / s.H, ys = row % s.H;
-        const S *g_b = g + b * s.C * s.HW;
-        S *gi_row = gi + b * s.C * s.HW + ys * s.W;
-        for (int64_t c = 0; c < s.C; ++c) std::fill(gi_row + c * s.HW, gi_row + c * s.HW + s.W, S(0));
+        reading.clear();
         for (int64_t i = 0; i < s.K; ++i) {
             // output rows y with clamp(y + i - p) == ys; the first / last source row also collect the margin
             const int64_t y_lo = std::max<int64_t>(ys == 0 ? 0 : ys - i + s.p, 0);
             const int64_t y_hi = std::min<int64_t>(ys == s.H - 1 ? s.H - 1 : ys - i + s.p, s.H - 1);
             for (int64_t y = y_lo; y <= y_hi; ++y) {
                 const Stencil sy = stencil(y, s.r, s.h);
-                const S ty = static_cast<S>(sy.t);
-                const S *lo_rows = rows.row(grid, b, sy.lo), *hi_rows = rows.row(grid, b, sy.hi);
-                for (int64_t j = 0; j < s.K; ++j) {
-                    const int64_t d = j - s.p;
-                    int64_t lo, hi;
-                    interior(s.W, d, lo, hi);
-                    const int64_t k = (i * s.K + j) * s.W;
-                    weight_row(wrow.data(), lo_rows + k, hi_rows + k, ty, s.W);
-                    for (int64_t c = 0; c < s.C; ++c)
-                        shifted_fma_adjoint(gi_row + c * s.HW, wrow.data(), g_b + c * s.HW + y * s.W, s.W, d, lo, hi);
-                }
+                const int64_t k = i * s.K * s.W;
+                reading.push_back({rows.row(grid, b, sy.lo) + k, rows.row(grid, b, sy.hi) + k,
+                                   static_cast<S>(sy.t), y});
             }
+        }
+        S *gi_row = gi + b * s.C * s.HW + ys * s.W;
+        if (s.C == 3) {
+            grad_image_row<S, 3>(gi_row, reading, gz, b, 0, acc_row, s);
+        } else {
+            for (int64_t c = 0; c < s.C; ++c) grad_image_row<S, 1>(gi_row + c * s.HW, reading, gz, b, c, acc_row, s);
         }
     }
 }
@@ -213,46 +310,67 @@ inline void column_adjoint(S *__restrict__ dst, const S *__restrict__ src, const
     }
 }
 
-// Pass 1 of grad_grid, iteration (b, gy): the pixel rows y whose row stencil starts at grid row gy (the band
-// [band_begin[gy], band_end[gy])) reduce their tap gradients sum_c g[c, y, x] * image[c, clamp(y + i - p),
-// clamp(x + j - p)] into two full-width accumulators, one for grid row gy (weight 1 - t) and one for gy + 1 (t);
-// each is then column-interpolation-adjointed once: part[b, gy, 0] (to grid row gy) and part[b, gy, 1] (to gy + 1),
-// both [K*K, w].
+// Pass 1 of grad_grid, iteration (b, gy): for each tap (i, j), the pixel rows y whose row stencil starts at grid row
+// gy (the band [band_begin[gy], band_end[gy])) sum their tap gradients sum_c g[c, y, x] * image[c, clamp(y + i -
+// p), clamp(x + j - p)] into two rows, one for grid row gy (weight 1 - t) and one for gy + 1 (t), each then
+// column-interpolation-adjointed: part[b, gy, 0, k] (to grid row gy) and part[b, gy, 1, k] (to gy + 1), [w] each.
+// NC: the channel count when known at compile time (3), 0 for s.C.
+template <typename S, int NC>
+void grad_band(S *out, const PaddedRows<S> &pad, const PaddedRows<S> &gz, int64_t b, int64_t y0, int64_t y1,
+               const Columns<S> &cols, std::vector<S> &lo_row, std::vector<S> &hi_row, const Dims &s) {
+    const int64_t KK = s.K * s.K, ny = y1 - y0;
+    const int64_t C = NC > 0 ? NC : s.C;
+    using V = typename Block<S>::type;
+    constexpr int64_t L = Block<S>::n;
+    std::vector<S> w_lo(ny), w_hi(ny);
+    std::vector<const S *> grows(ny * C), src(ny * C);
+    for (int64_t n = 0; n < ny; ++n) {
+        const Stencil sy = stencil(y0 + n, s.r, s.h);
+        w_hi[n] = sy.hi == sy.lo ? S(0) : static_cast<S>(sy.t);
+        w_lo[n] = S(1) - w_hi[n];
+        for (int64_t c = 0; c < C; ++c) grows[n * C + c] = gz.row(b, c, y0 + n);
+    }
+    for (int64_t i = 0; i < s.K; ++i) {
+        for (int64_t n = 0; n < ny; ++n)
+            for (int64_t c = 0; c < C; ++c) src[n * C + c] = pad.row(b, c, clamp_row(y0 + n + i - s.p, s.H));
+        for (int64_t j = 0; j < s.K; ++j) {
+            for (int64_t xb = 0; xb < s.W; xb += L) {
+                V al = {}, ah = {};
+                for (int64_t n = 0; n < ny; ++n) {
+                    V prod = {};
+                    for (int64_t c = 0; c < C; ++c)
+                        prod += Block<S>::load(grows[n * C + c] + xb) * Block<S>::load(src[n * C + c] + xb + j);
+                    al += w_lo[n] * prod;
+                    ah += w_hi[n] * prod;
+                }
+                Block<S>::store(lo_row.data() + xb, al, L);
+                Block<S>::store(hi_row.data() + xb, ah, L);
+            }
+            const int64_t k = i * s.K + j;
+            column_adjoint(out + k * s.w, lo_row.data(), cols, s.w);
+            column_adjoint(out + (KK + k) * s.w, hi_row.data(), cols, s.w);
+        }
+    }
+}
+
 template <typename S>
-void grad_band_rows(const S *img, const S *g, S *part, const std::vector<int64_t> &band_begin,
+void grad_band_rows(const PaddedRows<S> &pad, const PaddedRows<S> &gz, S *part, const std::vector<int64_t> &band_begin,
                     const std::vector<int64_t> &band_end, const Dims &s, int64_t begin, int64_t end) {
     const Columns<S> cols(s);
     const int64_t KK = s.K * s.K;
-    std::vector<S> acc(2 * KK * s.W), prod(s.W);
+    std::vector<S> lo_row(s.W + BX), hi_row(s.W + BX);
     for (int64_t row = begin; row < end; ++row) {
         const int64_t b = row / s.h, gy = row % s.h;
-        const S *img_b = img + b * s.C * s.HW;
-        std::fill(acc.begin(), acc.end(), S(0));
-        for (int64_t y = band_begin[gy]; y < band_end[gy]; ++y) {
-            const Stencil sy = stencil(y, s.r, s.h);
-            const S w_hi = sy.hi == sy.lo ? S(0) : static_cast<S>(sy.t);
-            const S w_lo = S(1) - w_hi;
-            const S *g_row = g + b * s.C * s.HW + y * s.W;
-            for (int64_t i = 0; i < s.K; ++i) {
-                const int64_t ys = clamp_row(y + i - s.p, s.H);
-                for (int64_t j = 0; j < s.K; ++j) {
-                    const int64_t d = j - s.p;
-                    int64_t lo, hi;
-                    interior(s.W, d, lo, hi);
-                    std::fill(prod.begin(), prod.end(), S(0));
-                    for (int64_t c = 0; c < s.C; ++c)
-                        shifted_fma(prod.data(), g_row + c * s.HW, img_b + c * s.HW + ys * s.W, s.W, d, lo, hi);
-                    S *acc_lo = acc.data() + (i * s.K + j) * s.W;
-                    S *acc_hi = acc_lo + KK * s.W;
-                    for (int64_t x = 0; x < s.W; ++x) {
-                        acc_lo[x] += w_lo * prod[x];
-                        acc_hi[x] += w_hi * prod[x];
-                    }
-                }
-            }
-        }
         S *out = part + row * 2 * KK * s.w;
-        for (int64_t k = 0; k < 2 * KK; ++k) column_adjoint(out + k * s.w, acc.data() + k * s.W, cols, s.w);
+        if (band_end[gy] <= band_begin[gy]) {  // no pixel row starts its stencil here
+            std::fill(out, out + 2 * KK * s.w, S(0));
+            continue;
+        }
+        if (s.C == 3) {
+            grad_band<S, 3>(out, pad, gz, b, band_begin[gy], band_end[gy], cols, lo_row, hi_row, s);
+        } else {
+            grad_band<S, 0>(out, pad, gz, b, band_begin[gy], band_end[gy], cols, lo_row, hi_row, s);
+        }
     }
 }
 
@@ -305,8 +423,9 @@ Tensor grid_kernels_fwd(const Tensor &image, const Tensor &grid, int64_t kernel_
         const scalar_t *img = image.const_data_ptr<scalar_t>();
         const scalar_t *grd = grid.const_data_ptr<scalar_t>();
         scalar_t *o = out.mutable_data_ptr<scalar_t>();
+        const PaddedRows<scalar_t> pad(img, s, true);
         at::parallel_for(0, s.B * s.H, 1, [&](int64_t begin, int64_t end) {
-            forward_rows<scalar_t>(img, grd, o, s, begin, end);
+            forward_rows<scalar_t>(grd, pad, o, s, begin, end);
         });
     });
     return out;
@@ -326,7 +445,7 @@ std::tuple<std::optional<Tensor>, std::optional<Tensor>> grid_kernels_bwd(
     AT_DISPATCH_FLOATING_TYPES(image.scalar_type(), "grid_kernels_bwd", [&] {
         const scalar_t *img = image.const_data_ptr<scalar_t>();
         const scalar_t *grd = grid.const_data_ptr<scalar_t>();
-        const scalar_t *g = grad_out.const_data_ptr<scalar_t>();
+        const PaddedRows<scalar_t> gz(grad_out.const_data_ptr<scalar_t>(), s, false);
         if (need_grid) {
             scalar_t *gg = grad_grid.mutable_data_ptr<scalar_t>();
             // [B, h, 2, K*K, w]: each row band's tap gradients for its two grid rows (twice the grid's size, far
@@ -335,8 +454,9 @@ std::tuple<std::optional<Tensor>, std::optional<Tensor>> grid_kernels_bwd(
             scalar_t *pt = part.mutable_data_ptr<scalar_t>();
             std::vector<int64_t> band_begin, band_end;
             row_bands(s, band_begin, band_end);
+            const PaddedRows<scalar_t> pad(img, s, true);
             at::parallel_for(0, s.B * s.h, 1, [&](int64_t begin, int64_t end) {
-                grad_band_rows<scalar_t>(img, g, pt, band_begin, band_end, s, begin, end);
+                grad_band_rows<scalar_t>(pad, gz, pt, band_begin, band_end, s, begin, end);
             });
             at::parallel_for(0, s.B * s.h, 1, [&](int64_t begin, int64_t end) {
                 grad_grid_rows<scalar_t>(pt, gg, s, begin, end);
@@ -345,7 +465,7 @@ std::tuple<std::optional<Tensor>, std::optional<Tensor>> grid_kernels_bwd(
         if (need_image) {
             scalar_t *gi = grad_image.mutable_data_ptr<scalar_t>();
             at::parallel_for(0, s.B * s.H, 1, [&](int64_t begin, int64_t end) {
-                grad_image_rows<scalar_t>(grd, g, gi, s, begin, end);
+                grad_image_rows<scalar_t>(grd, gz, gi, s, begin, end);
             });
         }
     });
