@@ -113,8 +113,11 @@ template <typename S> struct Block {
         std::copy(tmp, tmp + count, p);
     }
 };
-// Slack past a row that block loads may read: the widest block (float: 16 values).
-constexpr int64_t BX = 16;
+// Column blocks summed side by side in the forward and the image gradient: independent sums hide the latency of each
+// fused multiply-add.
+constexpr int64_t NB = 2;
+// Slack past a row that NB block loads may read: NB of the widest blocks (float: 16 values).
+constexpr int64_t BX = 16 * NB;
 
 // Grid rows resampled to the pixel columns, built when a thread first needs them and kept for the rows after:
 // row(b, gy)[k * W + x] = tap k of grid row gy, linearly interpolated to pixel column x. Direct-mapped on gy modulo
@@ -194,18 +197,22 @@ void forward_row(S *out_row, const S *lo_rows, const S *hi_rows, S ty, const Pad
         for (int c = 0; c < NC; ++c) src[i * NC + c] = pad.row(b, c0 + c, clamp_row(y + i - s.p, s.H));
     using V = typename Block<S>::type;
     constexpr int64_t L = Block<S>::n;
-    for (int64_t xb = 0; xb < s.W; xb += L) {
-        V acc[NC] = {};
+    for (int64_t xb = 0; xb < s.W; xb += NB * L) {
+        V acc[NB][NC] = {};
         for (int64_t i = 0; i < s.K; ++i) {
             for (int64_t j = 0; j < s.K; ++j) {
                 const int64_t k = (i * s.K + j) * s.W + xb;
-                const V a = Block<S>::load(lo_rows + k);
-                const V w = a + ty * (Block<S>::load(hi_rows + k) - a);
-                for (int c = 0; c < NC; ++c) acc[c] += w * Block<S>::load(src[i * NC + c] + xb + j);
+                for (int64_t nb = 0; nb < NB; ++nb) {
+                    const V a = Block<S>::load(lo_rows + k + nb * L);
+                    const V w = a + ty * (Block<S>::load(hi_rows + k + nb * L) - a);
+                    for (int c = 0; c < NC; ++c) acc[nb][c] += w * Block<S>::load(src[i * NC + c] + xb + nb * L + j);
+                }
             }
         }
-        const int64_t n = std::min<int64_t>(L, s.W - xb);
-        for (int c = 0; c < NC; ++c) Block<S>::store(out_row + c * s.HW + xb, acc[c], n);
+        for (int64_t nb = 0; nb < NB && xb + nb * L < s.W; ++nb) {
+            const int64_t n = std::min<int64_t>(L, s.W - xb - nb * L);
+            for (int c = 0; c < NC; ++c) Block<S>::store(out_row + c * s.HW + xb + nb * L, acc[nb][c], n);
+        }
     }
 }
 
@@ -246,19 +253,23 @@ void grad_image_row(S *gi_row, const std::vector<ReadingRow<S>> &reading, const 
         for (int c = 0; c < NC; ++c) grows[n * NC + c] = gz.row(b, c0 + c, reading[n].y);
     using V = typename Block<S>::type;
     constexpr int64_t L = Block<S>::n;
-    for (int64_t Xb = 0; Xb < Wx; Xb += L) {
-        V acc[NC] = {};
+    for (int64_t Xb = 0; Xb < Wx; Xb += NB * L) {
+        V acc[NB][NC] = {};
         for (size_t n = 0; n < reading.size(); ++n) {
             const ReadingRow<S> &rr = reading[n];
             for (int64_t j = 0; j < s.K; ++j) {
                 const int64_t k = j * s.W + Xb - j;
-                const V a = Block<S>::load(rr.lo + k);
-                const V w = a + rr.ty * (Block<S>::load(rr.hi + k) - a);
-                for (int c = 0; c < NC; ++c) acc[c] += w * Block<S>::load(grows[n * NC + c] + Xb - j);
+                for (int64_t nb = 0; nb < NB; ++nb) {
+                    const V a = Block<S>::load(rr.lo + k + nb * L);
+                    const V w = a + rr.ty * (Block<S>::load(rr.hi + k + nb * L) - a);
+                    for (int c = 0; c < NC; ++c) acc[nb][c] += w * Block<S>::load(grows[n * NC + c] + Xb + nb * L - j);
+                }
             }
         }
-        const int64_t n = std::min<int64_t>(L, Wx - Xb);
-        for (int c = 0; c < NC; ++c) Block<S>::store(acc_row.data() + c * Wx + Xb, acc[c], n);
+        for (int64_t nb = 0; nb < NB && Xb + nb * L < Wx; ++nb) {
+            const int64_t n = std::min<int64_t>(L, Wx - Xb - nb * L);
+            for (int c = 0; c < NC; ++c) Block<S>::store(acc_row.data() + c * Wx + Xb + nb * L, acc[nb][c], n);
+        }
     }
     for (int c = 0; c < NC; ++c) {
         const S *a = acc_row.data() + c * Wx;
