@@ -4,6 +4,7 @@ CPU, a C++/OpenMP kernel (``csrc/``, built on first use by :mod:`gsmsdr_ns._cpp_
 
 * :mod:`.pixel_kernels`: per-pixel K x K kernels (``apply_pixel_kernels``), the blur field's kernel application;
 * :mod:`.grid_kernels`: kernels predicted on a coarse grid, applied at every pixel without a dense copy;
+* :mod:`.depthwise_conv`: the depthwise convolution of the blur field's feature network;
 * :mod:`.disk_kernels`: a thin lens's per-pixel disk kernels (reference); :mod:`.disk_defocus`: the same, fused;
 * :mod:`.mixres`: the mixed-resolution down-up operator (``apply_mixres``, ``resolution_loss``);
 * :mod:`.deconvolved_loss`: the residual weighted by the inverse of an image's mean blur;

@@ -1,8 +1,8 @@
 """C++/OpenMP kernel for the fused thin-lens defocus op on CPU (csrc/disk_kernels.cpp), JIT-compiled on first use.
 
 Built by the loader it shares with the rasterizer and the pixel-kernel op (`gsmsdr_ns._cpp_ext`) into
-~/.cache/gsmsdr_ns/torch_extensions/<torch version>/gsmsdr_disk_kernels_cpu (or $TORCH_EXTENSIONS_DIR), at most once
-per process. `disk_kernels_cpp_available()` and `disk_kernels_cpp_error()` never raise, so the caller can fall back
+~/.cache/gsmsdr_ns/torch_extensions/<torch version>/gsmsdr_disk_kernels_cpu_<isa> (or $TORCH_EXTENSIONS_DIR), at most
+once per process. `disk_kernels_cpp_available()` and `disk_kernels_cpp_error()` never raise, so the caller can fall back
 to the PyTorch twin (`gsmsdr_ns.ops.disk_defocus`) with a clear reason.
 """
 

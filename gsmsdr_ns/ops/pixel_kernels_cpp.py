@@ -1,7 +1,7 @@
 """C++/OpenMP kernel for `apply_pixel_kernels` on CPU (csrc/pixel_kernels.cpp), JIT-compiled on first use.
 
 Built by the loader it shares with the rasterizer's kernel (`gsmsdr_ns._cpp_ext`) into
-~/.cache/gsmsdr_ns/torch_extensions/<torch version>/gsmsdr_pixel_kernels_cpu (or $TORCH_EXTENSIONS_DIR), at most
+~/.cache/gsmsdr_ns/torch_extensions/<torch version>/gsmsdr_pixel_kernels_cpu_<isa> (or $TORCH_EXTENSIONS_DIR), at most
 once per process. `pixel_kernels_cpp_available()` and `pixel_kernels_cpp_error()` never raise, so the caller
 can fall back to the PyTorch twin with a clear reason.
 

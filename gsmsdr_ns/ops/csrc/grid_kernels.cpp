@@ -35,8 +35,10 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 #include <optional>
 #include <tuple>
+#include <utility>
 #include <vector>
 
 namespace gsmsdr_grid {
@@ -310,16 +312,75 @@ void grad_image_rows(const S *grid, const PaddedRows<S> &gz, S *gi, const Dims &
 }
 
 // The column interpolation's adjoint of one full-width row: dst[gx] = sum of src[x] over the columns x whose
-// stencil reads grid column gx, times that stencil weight (runs, not a scatter: no store waits for the previous one).
-template <typename S>
-inline void column_adjoint(S *__restrict__ dst, const S *__restrict__ src, const Columns<S> &cols, int64_t w) {
-    for (int64_t gx = 0; gx < w; ++gx) {
-        S acc = 0;
-        for (int64_t x = cols.lo_begin[gx]; x < cols.lo_end[gx]; ++x) acc += cols.one_minus_t[x] * src[x];
-        for (int64_t x = cols.hi_begin[gx]; x < cols.hi_end[gx]; ++x) acc += cols.t[x] * src[x];
-        dst[gx] = acc;
+// stencil reads grid column gx, times that stencil weight. Away from the borders every grid column sums the same
+// pattern of columns, dst[gx] = sum_m c[m] * src[r gx + base + m]: there it is one filter over the row in column
+// blocks, read every r columns; the border columns sum their runs (lo / hi stencils) one by one.
+template <typename S> struct ColumnAdjoint {
+    explicit ColumnAdjoint(const Columns<S> &cols, const Dims &s) : cols(cols), W(s.W), w(s.w), r(s.r) {
+        const int64_t mid = w / 2;
+        const std::vector<std::pair<int64_t, S>> pattern = terms(mid);
+        if (pattern.empty()) return;
+        base = pattern.front().first - r * mid;
+        c.assign(pattern.back().first - pattern.front().first + 1, S(0));
+        for (const auto &t : pattern) c[t.first - pattern.front().first] += t.second;
+        // the regular columns: a contiguous range around the middle whose terms are the pattern's, shifted
+        first = mid;
+        while (first > 0 && regular(first - 1)) --first;
+        last = mid + 1;
+        while (last < w && regular(last)) ++last;
     }
-}
+
+    void apply(S *__restrict__ dst, const S *__restrict__ src, S *__restrict__ filtered) const {
+        using V = typename Block<S>::type;
+        constexpr int64_t L = Block<S>::n;
+        const int64_t M = static_cast<int64_t>(c.size());
+        if (first < last) {
+            const int64_t x0 = r * first + base, x1 = r * (last - 1) + base + 1;
+            for (int64_t xb = x0; xb < x1; xb += L) {
+                V acc = {};
+                for (int64_t m = 0; m < M; ++m) acc += c[m] * Block<S>::load(src + xb + m);
+                Block<S>::store(filtered + (xb - x0), acc, L);
+            }
+            for (int64_t gx = first; gx < last; ++gx) dst[gx] = filtered[r * (gx - first)];
+        }
+        for (int64_t gx = 0; gx < w; ++gx) {
+            if (gx == first) gx = std::max(last, gx);
+            if (gx >= w) break;
+            S acc = 0;
+            for (int64_t x = cols.lo_begin[gx]; x < cols.lo_end[gx]; ++x) acc += cols.one_minus_t[x] * src[x];
+            for (int64_t x = cols.hi_begin[gx]; x < cols.hi_end[gx]; ++x) acc += cols.t[x] * src[x];
+            dst[gx] = acc;
+        }
+    }
+
+  private:
+    // (x, weight) of the columns grid column gx sums, in increasing x (a column read as lo and as hi: both terms)
+    std::vector<std::pair<int64_t, S>> terms(int64_t gx) const {
+        std::vector<std::pair<int64_t, S>> out;
+        for (int64_t x = cols.hi_begin[gx]; x < cols.hi_end[gx]; ++x) out.emplace_back(x, cols.t[x]);
+        for (int64_t x = cols.lo_begin[gx]; x < cols.lo_end[gx]; ++x) out.emplace_back(x, cols.one_minus_t[x]);
+        std::sort(out.begin(), out.end(), [](const auto &a, const auto &b) { return a.first < b.first; });
+        return out;
+    }
+
+    bool regular(int64_t gx) const {
+        const int64_t x0 = r * gx + base, M = static_cast<int64_t>(c.size());
+        if (x0 < 0 || x0 + M > W) return false;
+        std::vector<S> got(M, S(0));
+        for (const auto &t : terms(gx)) {
+            if (t.first < x0 || t.first >= x0 + M) return false;
+            got[t.first - x0] += t.second;
+        }
+        for (int64_t m = 0; m < M; ++m)
+            if (std::abs(got[m] - c[m]) > 64 * std::numeric_limits<S>::epsilon() * std::abs(c[m])) return false;
+        return true;
+    }
+
+    const Columns<S> &cols;
+    const int64_t W, w, r;
+    int64_t base = 0, first = 0, last = 0;  // regular grid columns: [first, last)
+    std::vector<S> c;
+};
 
 // Pass 1 of grad_grid, iteration (b, gy): for each tap (i, j), the pixel rows y whose row stencil starts at grid row
 // gy (the band [band_begin[gy], band_end[gy])) sum their tap gradients sum_c g[c, y, x] * image[c, clamp(y + i -
@@ -328,7 +389,8 @@ inline void column_adjoint(S *__restrict__ dst, const S *__restrict__ src, const
 // NC: the channel count when known at compile time (3), 0 for s.C.
 template <typename S, int NC>
 void grad_band(S *out, const PaddedRows<S> &pad, const PaddedRows<S> &gz, int64_t b, int64_t y0, int64_t y1,
-               const Columns<S> &cols, std::vector<S> &lo_row, std::vector<S> &hi_row, const Dims &s) {
+               const ColumnAdjoint<S> &adjoint, std::vector<S> &lo_row, std::vector<S> &hi_row,
+               std::vector<S> &filtered, const Dims &s) {
     const int64_t KK = s.K * s.K, ny = y1 - y0;
     const int64_t C = NC > 0 ? NC : s.C;
     using V = typename Block<S>::type;
@@ -358,8 +420,8 @@ void grad_band(S *out, const PaddedRows<S> &pad, const PaddedRows<S> &gz, int64_
                 Block<S>::store(hi_row.data() + xb, ah, L);
             }
             const int64_t k = i * s.K + j;
-            column_adjoint(out + k * s.w, lo_row.data(), cols, s.w);
-            column_adjoint(out + (KK + k) * s.w, hi_row.data(), cols, s.w);
+            adjoint.apply(out + k * s.w, lo_row.data(), filtered.data());
+            adjoint.apply(out + (KK + k) * s.w, hi_row.data(), filtered.data());
         }
     }
 }
@@ -369,7 +431,8 @@ void grad_band_rows(const PaddedRows<S> &pad, const PaddedRows<S> &gz, S *part, 
                     const std::vector<int64_t> &band_end, const Dims &s, int64_t begin, int64_t end) {
     const Columns<S> cols(s);
     const int64_t KK = s.K * s.K;
-    std::vector<S> lo_row(s.W + BX), hi_row(s.W + BX);
+    const ColumnAdjoint<S> adjoint(cols, s);
+    std::vector<S> lo_row(s.W + BX), hi_row(s.W + BX), filtered(s.W + BX);
     for (int64_t row = begin; row < end; ++row) {
         const int64_t b = row / s.h, gy = row % s.h;
         S *out = part + row * 2 * KK * s.w;
@@ -378,9 +441,9 @@ void grad_band_rows(const PaddedRows<S> &pad, const PaddedRows<S> &gz, S *part, 
             continue;
         }
         if (s.C == 3) {
-            grad_band<S, 3>(out, pad, gz, b, band_begin[gy], band_end[gy], cols, lo_row, hi_row, s);
+            grad_band<S, 3>(out, pad, gz, b, band_begin[gy], band_end[gy], adjoint, lo_row, hi_row, filtered, s);
         } else {
-            grad_band<S, 0>(out, pad, gz, b, band_begin[gy], band_end[gy], cols, lo_row, hi_row, s);
+            grad_band<S, 0>(out, pad, gz, b, band_begin[gy], band_end[gy], adjoint, lo_row, hi_row, filtered, s);
         }
     }
 }
