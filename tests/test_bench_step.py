@@ -91,3 +91,15 @@ def test_no_estimate_trains_images_without_records_with_the_blur_field(motion_sc
 def test_bad_step_counts_are_refused(motion_scene, tmp_path):
     with pytest.raises(ValueError, match="warmup and steps must be >= 1"):
         measure_step_cost(StepCostSpec("plain", motion_scene, warmup=0, steps=1), tmp_path)
+
+
+def test_field_ops_bench_times_each_op_and_its_twin(capsys):
+    entrypoint(["field-ops", "--width", "40", "--height", "30", "--kernel-size", "5", "--repeats", "2"])
+    printed = capsys.readouterr().out
+    assert "Command: `gsmsdr-bench field-ops --width 40" in printed and "C++ ops built for" in printed
+    rows = [line for line in printed.splitlines() if line.startswith("| ") and "---" not in line][1:]
+    cpp = [r for r in rows if "| cpp |" in r]
+    torch_rows = [r for r in rows if "| torch |" in r]
+    assert len(cpp) == 3 + 5 and len(torch_rows) == 1 + 5  # grid op: 3 parts / one twin; 5 depthwise layers each
+    assert "[1, 16, 8, 10]" in printed  # the feature grid of a 40x30 render in cells of 4 px
+    assert all(float(r.split("|")[4]) > 0 for r in rows)

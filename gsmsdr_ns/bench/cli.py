@@ -86,6 +86,46 @@ class KernelsBench:
 
 
 @dataclass
+class FieldOpsBench:
+    """The blur field's compiled CPU ops against their PyTorch twins at a render size (float32): the grid-kernel op's
+    forward and gradients, the feature network's depthwise convolutions on the feature grid; min and median of
+    --repeats calls. See gsmsdr_ns/bench/field_ops.py."""
+
+    width: int = 458
+    """Render width (458x333: the real-size fern after its border crop)."""
+    height: int = 333
+    """Render height."""
+    kernel_size: int = 17
+    """Kernel size K of the grid-kernel op (the full-resolution scale's)."""
+    factor: int = 4
+    """Feature-grid cell size in pixels (the field's feature_downsample)."""
+    repeats: int = 15
+    """Timed calls per op after one untimed call."""
+    threads: int = 1
+    """torch's and the C++ kernels' intra-op threads (0: torch's default)."""
+    impls: Tuple[str, ...] = ("cpp", "torch")
+    """Implementations: cpp (the compiled ops) and/or torch (their PyTorch twins)."""
+
+    def main(self) -> None:
+        import shlex
+
+        import torch
+
+        from gsmsdr_ns._cpp_ext import cpu_isa
+        from gsmsdr_ns.bench.field_ops import format_table, run_field_ops_benchmark
+        from gsmsdr_ns.bench.machine import describe_machine, machine_info
+
+        if self.threads > 0:
+            torch.set_num_threads(self.threads)
+        rows = run_field_ops_benchmark(self.width, self.height, self.kernel_size, self.factor, self.repeats, self.impls)
+        command = "gsmsdr-bench " + " ".join(shlex.quote(a) for a in _invocation_args())
+        header = (f"# Blur-field ops\n\nCommand: `{command}`\n\nMachine: {describe_machine(machine_info())}; C++ "
+                  f"ops built for {cpu_isa()}; {torch.get_num_threads()} thread(s); min and median of "
+                  f"{self.repeats} calls after one untimed call.")  # fmt: skip
+        print(format_table(rows, header))
+
+
+@dataclass
 class MemoryBench:
     """Extra peak memory and time of the thin lens + blur field forward and backward at K = 17 on the CPU, each size
     and lens in a fresh process under an address-space limit; writes results.md / results.csv into --out (merged
@@ -342,6 +382,7 @@ SUBCOMMANDS = {
     "raster": RasterBench,
     "degrade": DegradeBench,
     "kernels": KernelsBench,
+    "field-ops": FieldOpsBench,
     "memory": MemoryBench,
     "suite": SuiteBench,
     "sfm": SfmBench,
