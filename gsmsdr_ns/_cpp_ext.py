@@ -15,6 +15,7 @@ Imports only torch and the standard library: `gsmsdr_ns.render` and `gsmsdr_ns.b
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import platform
@@ -84,6 +85,15 @@ def cpu_isa() -> str:
     except Exception:  # an old or unusual torch build: the baseline is always safe
         return "generic"
     return capability if capability in ISA_FLAGS else "generic"
+
+
+def headers_digest(folder: Path) -> str:
+    """A digest of the headers (*.h) beside a source: torch rebuilds an extension when its sources or flags change, not
+    its headers, so the digest goes into the flags."""
+    digest = hashlib.sha256()
+    for header in sorted(folder.glob("*.h")):
+        digest.update(header.name.encode() + b"\0" + header.read_bytes())
+    return digest.hexdigest()[:16]
 
 
 def _tail(text: object, lines: int = 15) -> str:
@@ -156,7 +166,12 @@ class CppExtension:
             load(
                 name=self.build_name(),
                 sources=[str(self.source)],
-                extra_cflags=["-O3", "-fopenmp", *ISA_FLAGS[cpu_isa()]],
+                extra_cflags=[
+                    "-O3",
+                    "-fopenmp",
+                    *ISA_FLAGS[cpu_isa()],
+                    f"-DGSMSDR_HEADERS_DIGEST={headers_digest(self.source.parent)}",
+                ],
                 extra_ldflags=["-fopenmp"],
                 build_directory=str(build_dir),
                 is_python_module=False,  # ops are registered with TORCH_LIBRARY

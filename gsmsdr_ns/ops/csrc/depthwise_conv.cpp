@@ -5,8 +5,8 @@
 // dilation=d, groups=C) without its bias.
 //
 // Each (b, c) plane is one iteration of one parallel loop. A plane is copied once into a zero-padded buffer, so the
-// tap loops read without bounds checks, and the output is built in 64-byte column blocks that keep their sums in
-// registers across all k * k taps. The image gradient is the same convolution of the padded output gradient with the
+// tap loops read without bounds checks, and the output is built in column blocks (vector_block.h) that keep their
+// sums in registers across all k * k taps. The image gradient is the same convolution of the padded output gradient with the
 // kernel flipped; the weight gradient sums, per tap, the output gradient times the shifted padded plane, one kernel
 // row of taps at a time.
 
@@ -15,6 +15,8 @@
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
 #include <torch/library.h>
+
+#include "vector_block.h"
 
 #include <algorithm>
 #include <cstdint>
@@ -25,33 +27,14 @@
 namespace gsmsdr_depthwise {
 
 using at::Tensor;
+using gsmsdr_vec::Block;
 
 namespace {
 
-// A block of columns as one GCC/Clang vector (64 bytes: one AVX-512 register, two AVX2 or four SSE registers).
-template <typename S> struct Block {
-    typedef S type __attribute__((vector_size(64)));
-    static constexpr int64_t n = 64 / sizeof(S);
-    static type load(const S *p) {
-        type v;
-        __builtin_memcpy(&v, p, sizeof v);
-        return v;
-    }
-    static void store(S *p, type v, int64_t count) {
-        S tmp[n];
-        __builtin_memcpy(tmp, &v, sizeof v);
-        std::copy(tmp, tmp + count, p);
-    }
-    static S sum(type v) {
-        S tmp[n];
-        __builtin_memcpy(tmp, &v, sizeof v);
-        S acc = 0;
-        for (int64_t i = 0; i < n; ++i) acc += tmp[i];
-        return acc;
-    }
-};
-// Rows are padded to a whole number of BX-value groups (four blocks of 16 floats or eight of 8 doubles), plus BX.
-constexpr int64_t BX = 64;
+// Column blocks summed side by side: independent sums hide the latency of each fused multiply-add.
+constexpr int64_t NB = 4;
+// Rows are padded to a whole number of BX-value groups (NB blocks, or more), plus BX.
+constexpr int64_t BX = gsmsdr_vec::MAX_BLOCK * NB;
 
 struct Dims {
     int64_t B, C, H, W, k, d, P, Hp, Wp;  // P: padding in pixels; Hp x Wp: the padded plane (with slack)
@@ -62,9 +45,6 @@ template <typename S> void pad_plane(const S *plane, S *buf, const Dims &s) {
     std::fill(buf, buf + s.Hp * s.Wp, S(0));
     for (int64_t y = 0; y < s.H; ++y) std::copy(plane + y * s.W, plane + (y + 1) * s.W, buf + (y + s.P) * s.Wp + s.P);
 }
-
-// Column blocks summed side by side: independent sums hide the latency of each fused multiply-add.
-constexpr int64_t NB = 4;
 
 // out[y, x] = sum_{i, j} w[i * k + j] * buf[y + i d, x + j d] over the plane (buf padded as pad_plane does).
 template <typename S> void correlate(const S *buf, const S *w, S *out, const Dims &s) {

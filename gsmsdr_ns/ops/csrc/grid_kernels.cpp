@@ -31,6 +31,7 @@
 #include <torch/library.h>
 
 #include "row_ops.h"
+#include "vector_block.h"
 
 #include <algorithm>
 #include <cmath>
@@ -44,6 +45,7 @@
 namespace gsmsdr_grid {
 
 using at::Tensor;
+using gsmsdr_vec::Block;
 
 namespace {
 
@@ -99,27 +101,11 @@ template <typename S> struct Columns {
     }
 };
 
-// A block of columns the inner loops handle at once, as one GCC/Clang vector (64 bytes: one AVX-512 register, two
-// AVX2 or four SSE registers), so that each block keeps its sums in registers across all K*K taps.
-template <typename S> struct Block {
-    typedef S type __attribute__((vector_size(64)));
-    static constexpr int64_t n = 64 / sizeof(S);
-    static type load(const S *p) {
-        type v;
-        __builtin_memcpy(&v, p, sizeof v);
-        return v;
-    }
-    static void store(S *p, type v, int64_t count) {
-        S tmp[n];
-        __builtin_memcpy(tmp, &v, sizeof v);
-        std::copy(tmp, tmp + count, p);
-    }
-};
 // Column blocks summed side by side in the forward and the image gradient: independent sums hide the latency of each
 // fused multiply-add.
 constexpr int64_t NB = 2;
-// Slack past a row that NB block loads may read: NB of the widest blocks (float: 16 values).
-constexpr int64_t BX = 16 * NB;
+// Slack past a row that NB block loads may read.
+constexpr int64_t BX = gsmsdr_vec::MAX_BLOCK * NB;
 
 // Grid rows resampled to the pixel columns, built when a thread first needs them and kept for the rows after:
 // row(b, gy)[k * W + x] = tap k of grid row gy, linearly interpolated to pixel column x. Direct-mapped on gy modulo
