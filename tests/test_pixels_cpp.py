@@ -621,7 +621,8 @@ def test_missing_compiler_gives_clear_message(tmp_path):
 @pytest.mark.slow  # builds an extension (about 30 s)
 def test_extensions_build_for_the_cpu_instruction_set_and_the_baseline_build_agrees(tmp_path):
     """Builds are kept per instruction-set level; ``ATEN_CPU_CAPABILITY=default`` (what torch's own kernels then use
-    too) builds the x86-64 baseline, whose blocks of four SSE registers give the same blur as the PyTorch twin."""
+    too) builds the x86-64 baseline, whose column blocks of one SSE register give the same blur as the PyTorch
+    twin."""
     from gsmsdr_ns._cpp_ext import ISA_FLAGS, cpu_isa
     from gsmsdr_ns.ops.grid_kernels import EXTENSION
 
