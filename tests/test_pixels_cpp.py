@@ -598,6 +598,15 @@ def test_bad_inputs_raise_value_error(overrides, pattern):
         _bad_call(**overrides)
 
 
+def run_python(code: str, tmp_path, timeout: float, **env_overrides: str) -> subprocess.CompletedProcess:
+    """Run ``code`` in a fresh interpreter that imports this checkout, with extensions built under ``tmp_path``."""
+    env = dict(os.environ, TORCH_EXTENSIONS_DIR=str(tmp_path / "ext"), **env_overrides)
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    return subprocess.run(
+        [sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=timeout
+    )
+
+
 def test_missing_compiler_gives_clear_message(tmp_path):
     code = (
         "from gsmsdr_ns.render.pixels_cpp import cpp_backend_available, cpp_backend_error\n"
@@ -606,11 +615,7 @@ def test_missing_compiler_gives_clear_message(tmp_path):
         "print('ERROR', cpp_backend_error())\n"
         "print('AGAIN', cpp_backend_available())\n"
     )
-    env = dict(os.environ, CXX="/nonexistent", TORCH_EXTENSIONS_DIR=str(tmp_path / "ext"))
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    proc = subprocess.run(
-        [sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120
-    )
+    proc = run_python(code, tmp_path, 120, CXX="/nonexistent")
     assert proc.returncode == 0, proc.stderr
     assert "AVAILABLE False" in proc.stdout and "AGAIN False" in proc.stdout
     assert "ERROR no C++ compiler found (set CXX or install g++)" in proc.stdout
@@ -642,11 +647,7 @@ def test_extensions_build_for_the_cpu_instruction_set_and_the_baseline_build_agr
         "          *[(a - b).abs().max().item() / b.abs().max().item() for a, b in zip(*grads)])\n"
         "print('ERR', err)\n"
     )
-    env = dict(os.environ, ATEN_CPU_CAPABILITY="default", TORCH_EXTENSIONS_DIR=str(tmp_path / "ext"))
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    proc = subprocess.run(
-        [sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=600
-    )
+    proc = run_python(code, tmp_path, 600, ATEN_CPU_CAPABILITY="default")
     assert proc.returncode == 0, proc.stderr
     assert "ISA generic gsmsdr_grid_kernels_cpu_generic" in proc.stdout, proc.stdout
     assert (tmp_path / "ext" / "gsmsdr_grid_kernels_cpu_generic").is_dir()
