@@ -94,7 +94,9 @@ def test_bad_step_counts_are_refused(motion_scene, tmp_path):
 
 
 def test_field_ops_bench_times_each_op_and_its_twin(capsys):
+    threads = torch.get_num_threads()
     entrypoint(["field-ops", "--width", "40", "--height", "30", "--kernel-size", "5", "--repeats", "2"])
+    assert torch.get_num_threads() == threads  # its 1-thread default does not outlive it
     printed = capsys.readouterr().out
     assert "Command: `gsmsdr-bench field-ops --width 40" in printed and "C++ ops built for" in printed
     rows = [line for line in printed.splitlines() if line.startswith("| ") and "---" not in line][1:]

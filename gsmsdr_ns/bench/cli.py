@@ -115,12 +115,19 @@ class FieldOpsBench:
         from gsmsdr_ns.bench.field_ops import format_table, run_field_ops_benchmark
         from gsmsdr_ns.bench.machine import describe_machine, machine_info
 
+        threads_before = torch.get_num_threads()
         if self.threads > 0:
             torch.set_num_threads(self.threads)
-        rows = run_field_ops_benchmark(self.width, self.height, self.kernel_size, self.factor, self.repeats, self.impls)
+        try:
+            rows = run_field_ops_benchmark(
+                self.width, self.height, self.kernel_size, self.factor, self.repeats, self.impls
+            )
+            threads = torch.get_num_threads()
+        finally:
+            torch.set_num_threads(threads_before)
         command = "gsmsdr-bench " + " ".join(shlex.quote(a) for a in _invocation_args())
         header = (f"# Blur-field ops\n\nCommand: `{command}`\n\nMachine: {describe_machine(machine_info())}; C++ "
-                  f"ops built for {cpu_isa()}; {torch.get_num_threads()} thread(s); min and median of "
+                  f"ops built for {cpu_isa()}; {threads} thread(s); min and median of "
                   f"{self.repeats} calls after one untimed call.")  # fmt: skip
         print(format_table(rows, header))
 
