@@ -11,7 +11,9 @@
 // with k = i * K + j, p = K / 2, as in pixel_kernels.cpp. The full-resolution
 // [B, K*K, H, W] weights are never stored: each row of them is interpolated
 // from two grid rows resampled to the pixel columns (ResampledRows) when it is
-// needed.
+// needed. The loops run over blocks of columns (vector_block.h) that keep
+// their sums in registers across all K*K taps, reading image rows padded once
+// per call (PaddedRows) without bounds checks.
 //
 // Parallel loops (one OpenMP region per call, each output row owned by one
 // iteration, so results do not depend on the thread schedule):
