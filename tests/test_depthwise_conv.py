@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 import torch.nn.functional as F
+from reference_checks import assert_matches_reference
 
 from gsmsdr_ns.blur.maan import ChannelLayerNorm, DepthwiseConv2d
 from gsmsdr_ns.ops.depthwise_conv import depthwise_conv2d, depthwise_conv_cpp_available
@@ -26,12 +27,7 @@ def test_matches_grouped_conv2d_in_float64(backend, B, C, H, W, k, dilation):
     bias = torch.rand(C, dtype=torch.float64, generator=gen, requires_grad=True)
     out = depthwise_conv2d(image, weight, bias, dilation, backend=backend)
     ref = F.conv2d(image, weight, bias, padding=(k // 2) * dilation, dilation=dilation, groups=C)
-    torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)
-    grad_out = torch.rand(out.shape, dtype=torch.float64, generator=gen)
-    got = torch.autograd.grad(out, (image, weight, bias), grad_out)
-    want = torch.autograd.grad(ref, (image, weight, bias), grad_out)
-    for g, w in zip(got, want):
-        torch.testing.assert_close(g, w, rtol=1e-11, atol=1e-11)
+    assert_matches_reference(out, ref, (image, weight, bias), gen)
 
 
 @needs_cpp

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 import torch.nn.functional as F
+from reference_checks import assert_matches_reference
 
 from gsmsdr_ns.blur.field import BlurField, BlurFieldConfig
 from gsmsdr_ns.ops.grid_kernels import (
@@ -41,13 +42,7 @@ def test_matches_dense_reference_in_float64(backend, H, W, factor, K):
     image = torch.rand(2, 3, H, W, dtype=torch.float64, generator=gen, requires_grad=True)
     grid = torch.rand(2, K * K, *grid_size((H, W), factor), dtype=torch.float64, generator=gen, requires_grad=True)
     out = apply_grid_kernels(image, grid, factor, backend=backend)
-    ref = reference(image, grid, factor)
-    torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)
-    grad_out = torch.rand(out.shape, dtype=torch.float64, generator=gen)
-    got = torch.autograd.grad(out, (image, grid), grad_out)
-    want = torch.autograd.grad(ref, (image, grid), grad_out)
-    for g, w in zip(got, want):
-        torch.testing.assert_close(g, w, rtol=1e-11, atol=1e-11)
+    assert_matches_reference(out, reference(image, grid, factor), (image, grid), gen)
 
 
 @needs_cpp
@@ -58,12 +53,7 @@ def test_cpp_matches_the_reference_for_any_channel_count(channels):
     image = torch.rand(2, channels, 19, 35, dtype=torch.float64, generator=gen, requires_grad=True)
     grid = torch.rand(2, 49, *grid_size((19, 35), 4), dtype=torch.float64, generator=gen, requires_grad=True)
     out = apply_grid_kernels(image, grid, 4, backend="cpp")
-    ref = reference(image, grid, 4)
-    torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)
-    grad_out = torch.rand(out.shape, dtype=torch.float64, generator=gen)
-    got = torch.autograd.grad(out, (image, grid), grad_out)
-    for g, w in zip(got, torch.autograd.grad(ref, (image, grid), grad_out)):
-        torch.testing.assert_close(g, w, rtol=1e-11, atol=1e-11)
+    assert_matches_reference(out, reference(image, grid, 4), (image, grid), gen)
 
 
 @needs_cpp
