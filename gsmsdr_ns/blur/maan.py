@@ -115,8 +115,8 @@ class DepthwiseConv2d(nn.Conv2d):
     [B, C, H, W], the parameters and values of ``nn.Conv2d(C, C, kernel, groups=C, ...)``.
 
     Computed by :func:`gsmsdr_ns.ops.depthwise_conv.depthwise_conv2d`: on the CPU a C++ kernel whose backward costs
-    about its forward (oneDNN's depthwise backward costs 3-6x its forward on the feature grid's maps), elsewhere
-    PyTorch's convolution.
+    about its forward (oneDNN's depthwise backward costs several times its forward on the feature grid's maps),
+    elsewhere PyTorch's convolution.
     """
 
     def __init__(self, channels: int, kernel: int, dilation: int = 1) -> None:

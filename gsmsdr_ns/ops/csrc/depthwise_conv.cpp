@@ -6,9 +6,9 @@
 //
 // Each (b, c) plane is one iteration of one parallel loop. A plane is copied once into a zero-padded buffer, so the
 // tap loops read without bounds checks, and the output is built in column blocks (vector_block.h) that keep their
-// sums in registers across all k * k taps. The image gradient is the same convolution of the padded output gradient with the
-// kernel flipped; the weight gradient sums, per tap, the output gradient times the shifted padded plane, one kernel
-// row of taps at a time.
+// sums in registers across all k * k taps. The image gradient is the same convolution of the padded output gradient
+// with the kernel flipped; the weight gradient sums, per tap, the output gradient times the shifted padded plane, one
+// kernel row of taps at a time.
 
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
@@ -67,8 +67,10 @@ template <typename S> void correlate(const S *buf, const S *w, S *out, const Dim
     }
 }
 
-// gw[i * k + j] = sum_{y, x} g[y, x] * buf[y + i d, x + j d]; g padded to whole blocks with zeros (gpad, [H, Wg]).
-template <typename S> void weight_grad(const S *buf, const S *gpad, int64_t Wg, S *gw, const Dims &s) {
+// gw[i * k + j] = sum_{y, x} g[y, x] * buf[y + i d, x + j d], with g read from gbuf, the output gradient padded as
+// pad_plane does (zero past the plane's columns, so whole groups of blocks can be read).
+template <typename S> void weight_grad(const S *buf, const S *gbuf, S *gw, const Dims &s) {
+    const int64_t Wg = s.Wp - 2 * s.P - BX;  // the plane's columns, rounded up to whole groups of blocks
     using V = typename Block<S>::type;
     constexpr int64_t L = Block<S>::n;
     constexpr int64_t MAXJ = 8;  // taps of one kernel row summed together (k <= 8 per pass)
@@ -78,7 +80,7 @@ template <typename S> void weight_grad(const S *buf, const S *gpad, int64_t Wg, 
             V acc[MAXJ] = {};
             for (int64_t y = 0; y < s.H; ++y) {
                 const S *row = buf + (y + i * s.d) * s.Wp;
-                const S *grow = gpad + y * Wg;
+                const S *grow = gbuf + (y + s.P) * s.Wp + s.P;
                 for (int64_t xb = 0; xb < Wg; xb += L) {
                     const V g = Block<S>::load(grow + xb);
                     for (int64_t jj = 0; jj < nj; ++jj) acc[jj] += g * Block<S>::load(row + xb + (j0 + jj) * s.d);
@@ -145,22 +147,16 @@ std::tuple<std::optional<Tensor>, std::optional<Tensor>> depthwise_conv_bwd(
         for (int64_t c = 0; c < s.C; ++c)
             for (int64_t t = 0; t < s.k * s.k; ++t) flipped[c * s.k * s.k + t] = w[c * s.k * s.k + s.k * s.k - 1 - t];
         at::parallel_for(0, s.B * s.C, 1, [&](int64_t begin, int64_t end) {
-            std::vector<scalar_t> buf(s.Hp * s.Wp);
-            const int64_t Wg = s.Wp - 2 * s.P - BX;
-            std::vector<scalar_t> gpad(need_weight ? s.H * Wg : 0);
+            std::vector<scalar_t> gbuf(s.Hp * s.Wp), ibuf(need_weight ? s.Hp * s.Wp : 0);
             for (int64_t plane = begin; plane < end; ++plane) {
-                const scalar_t *g_plane = g + plane * s.H * s.W;
+                pad_plane(g + plane * s.H * s.W, gbuf.data(), s);  // read by both gradients
                 if (need_weight) {
-                    pad_plane(img + plane * s.H * s.W, buf.data(), s);
-                    std::fill(gpad.begin(), gpad.end(), scalar_t(0));
-                    for (int64_t y = 0; y < s.H; ++y)
-                        std::copy(g_plane + y * s.W, g_plane + (y + 1) * s.W, gpad.data() + y * Wg);
-                    weight_grad(buf.data(), gpad.data(), Wg, per_plane.mutable_data_ptr<scalar_t>() +
-                                plane * s.k * s.k, s);
+                    pad_plane(img + plane * s.H * s.W, ibuf.data(), s);
+                    weight_grad(ibuf.data(), gbuf.data(), per_plane.mutable_data_ptr<scalar_t>() + plane * s.k * s.k,
+                                s);
                 }
                 if (need_image) {
-                    pad_plane(g_plane, buf.data(), s);
-                    correlate(buf.data(), flipped.data() + (plane % s.C) * s.k * s.k,
+                    correlate(gbuf.data(), flipped.data() + (plane % s.C) * s.k * s.k,
                               grad_image.mutable_data_ptr<scalar_t>() + plane * s.H * s.W, s);
                 }
             }

@@ -52,9 +52,6 @@ using gsmsdr_vec::Block;
 namespace {
 
 using gsmsdr_rows::clamp_row;
-using gsmsdr_rows::interior;
-using gsmsdr_rows::shifted_fma;
-using gsmsdr_rows::shifted_fma_adjoint;
 
 struct Dims {
     int64_t B, C, H, W, K, p, HW, h, w, hw, r;
@@ -219,7 +216,8 @@ void forward_rows(const S *grid, const PaddedRows<S> &pad, S *out, const Dims &s
         if (s.C == 3) {
             forward_row<S, 3>(out_row, lo_rows, hi_rows, ty, pad, b, 0, y, s);
         } else {
-            for (int64_t c = 0; c < s.C; ++c) forward_row<S, 1>(out_row + c * s.HW, lo_rows, hi_rows, ty, pad, b, c, y, s);
+            for (int64_t c = 0; c < s.C; ++c)
+                forward_row<S, 1>(out_row + c * s.HW, lo_rows, hi_rows, ty, pad, b, c, y, s);
         }
     }
 }
