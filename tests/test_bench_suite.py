@@ -181,9 +181,9 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
                             "full-lens-unknown", "full-paper-loss", "full-lens-paper-loss",
                             "full-margin", "full-shake", "full-true",
                             "full-per-pixel", "full-fallback", "full-fallback-coarse", "full-anchor", "full-lens-early",
-                            "full-grid4k", "-view", "view", "view-k25", "view-k33", "view-k49",
-                            "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite", "gsmsdr-cpu", "sharp-degraded-poses",
-                            "sharp"}  # fmt: skip
+                            "full-grid4k", "full-cells4", "cpu-poses", "cpu-shake", "-view", "view", "view-k25",
+                            "view-k33", "view-k49", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite", "gsmsdr-cpu",
+                            "sharp-degraded-poses", "sharp"}  # fmt: skip
 
     def model(name: str):
         return METHODS[name].make_config(tmp_path, tmp_path / "out").pipeline.model
@@ -206,9 +206,8 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
         assert getattr(field, switch) is False
         assert all(getattr(field, other) for other in ("gaka", "safm", "mca", "rgbd") if other != switch)
     assert model("gsmsdr-lite").blur_field.size == "lite"
-    assert (
-        model("full-grid4k").blur_field.feature_grid_cells == 4096 and model("full").blur_field.feature_grid_cells == 0
-    )
+    assert model("full").blur_field.feature_grid_cells == 4096 == model("full-grid4k").blur_field.feature_grid_cells
+    assert model("full-cells4").blur_field.feature_grid_cells == 0
     assert model("view-k25").blur_field.kernel_sizes == (7, 13, 25)
     assert model("view-k49").blur_field.kernel_sizes == (13, 25, 49) and model("view-k49").blur_field.mode == "view"
     assert model("view-k33").blur_field.kernel_sizes == (9, 17, 33) == model("gsmsdr-cpu").blur_field.kernel_sizes
@@ -228,11 +227,15 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
         "all",
     )
     assert model("plain-poses").degradation == "sharp"
+    assert (model("cpu-poses").camera_optimizer.mode, model("cpu-poses").camera_optimizer_views) == ("SO3xR3", "all")
+    assert model("cpu-poses").blur_field == model("gsmsdr-cpu").blur_field
     options = {name: model(name).degradation_model for name in METHODS if METHODS[name].has_blur_field}
     assert options["full-uncentred"].kernel_centre_weight == 0 < options["full"].kernel_centre_weight
     assert options["full-lens-unknown"].thin_lens_for_unknown_kind
     assert options["full-margin"].render_margin and not options["full"].render_margin
     assert options["full-shake"].camera_shake and not options["full"].camera_shake
+    assert options["cpu-shake"].camera_shake and options["cpu-shake"].render_margin
+    assert model("cpu-shake").blur_field == model("gsmsdr-cpu").blur_field
     assert not options["full"].thin_lens_for_unknown_kind
     paper_loss, full = options["full-paper-loss"], options["full"]
     assert paper_loss.deconvolved_loss_weight == 0 < full.deconvolved_loss_weight
@@ -270,13 +273,18 @@ def test_fingerprint_follows_the_resolved_preset(tmp_path: Path, monkeypatch: py
 
 
 def test_fields_added_at_their_neutral_value_keep_the_fingerprint() -> None:
-    """feature_grid_cells=0 (added later, trains as before) is not in the preset fingerprint; another value is."""
+    """feature_grid_cells=0 (added later, trains as the records made before it) is not in the preset fingerprint;
+    another value, the default 4096 included, is: full's records made with 4 px cells are rerun, full-cells4's are
+    the ones made before."""
     from gsmsdr_ns.bench.fingerprint import preset_fingerprint
     from gsmsdr_ns.bench.methods import METHODS
 
-    full, capped = preset_fingerprint(METHODS["full"]), preset_fingerprint(METHODS["full-grid4k"])
-    assert "feature_grid_cells" not in full and "feature_grid_cells=4096" in capped
-    assert capped.replace("feature_grid_cells=4096, ", "") == full
+    cells4, full = preset_fingerprint(METHODS["full-cells4"]), preset_fingerprint(METHODS["full"])
+    assert "feature_grid_cells" not in cells4 and "feature_grid_cells=4096" in full
+    assert full.replace("feature_grid_cells=4096, ", "") == cells4
+    assert preset_fingerprint(METHODS["full-grid4k"]) == full
+    # a field without a feature network (mode view) trains the same at any cap: no rerun of its records
+    assert "feature_grid_cells" not in preset_fingerprint(METHODS["gsmsdr-cpu"])
 
 
 SHARED_TRAINING_SUITE = """\

@@ -132,7 +132,11 @@ def test_feature_grid_cells_cap_the_grid_at_any_render_size():
     config = BlurFieldConfig(feature_downsample=4, feature_grid_cells=100)
     assert config.grid_factor((30, 40)) == 4  # 1200 pixels: 8 x 10 cells of 4 px are under the cap
     assert config.grid_factor((333, 458)) == 40  # ceil(sqrt(152514 / 100))
-    assert BlurFieldConfig(feature_downsample=4).grid_factor((333, 458)) == 4  # no cap: always feature_downsample
+    uncapped = BlurFieldConfig(feature_downsample=4, feature_grid_cells=0)
+    assert uncapped.grid_factor((333, 458)) == 4  # no cap: always feature_downsample
+    default = BlurFieldConfig()  # capped at 4096 cells: 4 px cells up to 256x256, larger above
+    assert default.grid_factor((256, 256)) == 4 and default.grid_factor((333, 458)) == 7
+    assert default.grid_factor((866, 1297)) == 17
     assert BlurFieldConfig(feature_downsample=1, feature_grid_cells=100).grid_factor((333, 458)) == 1  # per pixel
     with pytest.raises(ValueError, match="feature_grid_cells"):
         BlurFieldConfig(feature_grid_cells=-1)

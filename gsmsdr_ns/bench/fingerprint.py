@@ -7,6 +7,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import re
 from pathlib import Path
 from typing import Any, Dict
 
@@ -22,6 +23,11 @@ ADDED_AT_NEUTRAL: Dict[str, Any] = {"feature_grid_cells": 0}
 :func:`preset_fingerprint` at that value, so adding them does not rerun every record (another value changes it)."""
 
 
+NETWORK_ONLY = frozenset({"feature_grid_cells"})
+"""Fields of :data:`ADDED_AT_NEUTRAL` read only by the field's feature network: left out of the fingerprint of a
+mode ``view`` field (no network) at any value."""
+
+
 def preset_fingerprint(method: MethodSpec) -> str:
     """The resolved model and optimizer settings of ``method`` (its preset with its changes applied), so a record
     made before a preset default changed is rerun. Paths are left out, and so are the blur field's and degradation
@@ -33,7 +39,10 @@ def preset_fingerprint(method: MethodSpec) -> str:
         model.blur_field = model.degradation_model = None
         optimizers = {k: v for k, v in optimizers.items() if not k.startswith("blur_")}
     text = repr(model) + repr(sorted(optimizers.items()))
+    without_network = model.blur_field is not None and model.blur_field.mode == "view"
     for name, value in ADDED_AT_NEUTRAL.items():
+        if without_network and name in NETWORK_ONLY:  # any value trains the same: drop it whatever it is
+            text = re.sub(rf"\b{name}=[^,]*, ", "", text)
         text = text.replace(f"{name}={value!r}, ", "")
     return text
 

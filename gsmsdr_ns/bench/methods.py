@@ -210,8 +210,34 @@ METHODS: Dict[str, MethodSpec] = {
             "full-grid4k",
             "full, feature grid of at most 4096 cells",
             "gsmsdr",
-            "full with the feature grid's cells grown on larger renders to keep at most 4096 of them",
+            "full with the feature grid capped at 4096 cells, named (the default since the cap became one; the "
+            "published grid4k suites name it)",
             feature_grid_cells=4096,
+        ),  # fmt: skip
+        MethodSpec(
+            "cpu-poses",
+            "gsmsdr-cpu + pose refinement",
+            "gsmsdr-cpu",
+            (),
+            False,
+            "gsmsdr-cpu with nerfstudio's camera optimizer (SO3xR3) on every training view",
+            pose_refinement="all",
+        ),  # fmt: skip
+        _method(
+            "cpu-shake",
+            "gsmsdr-cpu + camera shake paths",
+            "gsmsdr-cpu",
+            "gsmsdr-cpu with the render margin and a learnt camera rotation path before the per-view kernels",
+            render_margin=True,
+            camera_shake=True,
+        ),  # fmt: skip
+        _method(
+            "full-cells4",
+            "full, 4 px feature cells at any size",
+            "gsmsdr",
+            "full with the feature grid at 4 px cells on every render, however large (feature_grid_cells 0, the "
+            "default before the 4096-cell cap)",
+            feature_grid_cells=0,
         ),  # fmt: skip
         _method(
             "full-uncentred",
