@@ -181,9 +181,9 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
                             "full-lens-unknown", "full-paper-loss", "full-lens-paper-loss",
                             "full-margin", "full-shake", "full-true",
                             "full-per-pixel", "full-fallback", "full-fallback-coarse", "full-anchor", "full-lens-early",
-                            "full-grid4k", "full-cells4", "cpu-poses", "cpu-shake", "-view", "view", "view-k25",
-                            "view-k33", "view-k49", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite", "gsmsdr-cpu",
-                            "sharp-degraded-poses", "sharp"}  # fmt: skip
+                            "full-grid4k", "full-cells4", "cpu-poses", "cpu-shake", "cpu-kernels", "-view", "view",
+                            "view-k25", "view-k33", "view-k49", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite",
+                            "gsmsdr-cpu", "sharp-degraded-poses", "sharp"}  # fmt: skip
 
     def model(name: str):
         return METHODS[name].make_config(tmp_path, tmp_path / "out").pipeline.model
@@ -234,8 +234,10 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert options["full-lens-unknown"].thin_lens_for_unknown_kind
     assert options["full-margin"].render_margin and not options["full"].render_margin
     assert options["full-shake"].camera_shake and not options["full"].camera_shake
-    assert options["cpu-shake"].camera_shake and options["cpu-shake"].render_margin
-    assert model("cpu-shake").blur_field == model("gsmsdr-cpu").blur_field
+    assert options["gsmsdr-cpu"].camera_shake and options["gsmsdr-cpu"].render_margin
+    assert repr(model("cpu-shake")) == repr(model("gsmsdr-cpu"))
+    assert not options["cpu-kernels"].camera_shake and not options["cpu-kernels"].render_margin
+    assert model("cpu-kernels").blur_field == model("gsmsdr-cpu").blur_field
     assert not options["full"].thin_lens_for_unknown_kind
     paper_loss, full = options["full-paper-loss"], options["full"]
     assert paper_loss.deconvolved_loss_weight == 0 < full.deconvolved_loss_weight

@@ -58,15 +58,18 @@ def test_demo_preset_values(tmp_path: Path) -> None:
 
 
 def test_cpu_preset_is_mode_view_on_the_real_size_suites_schedule(tmp_path: Path) -> None:
-    """gsmsdr-cpu = the gsmsdr preset with one kernel per view (9 / 17 / 33 px), trained on the real-size suite's
-    schedule; so the suite's `gsmsdr-cpu` row trains the preset as ns-train does (with `view-k33`'s model)."""
+    """gsmsdr-cpu = the gsmsdr preset with one kernel per view (9 / 17 / 33 px) after a camera rotation path (with
+    the render margin), trained on the real-size suite's schedule; so the suite's `gsmsdr-cpu` row trains the preset
+    as ns-train does (`view-k33`'s field, `cpu-shake`'s model)."""
     from gsmsdr_ns.bench.suite_config import find_suite_file, load_suite
 
     config = gsmsdr_cpu_trainer_config()
-    field = config.pipeline.model.blur_field
+    field, degradation = config.pipeline.model.blur_field, config.pipeline.model.degradation_model
     assert config.method_name == "gsmsdr-cpu" and field.mode == "view" and field.kernel_sizes == (9, 17, 33)
+    assert degradation.camera_shake and degradation.render_margin
     expected = gsmsdr_trainer_config()
     expected.pipeline.model.blur_field = field
+    expected.pipeline.model.degradation_model = degradation
     suite = load_suite(find_suite_file("real-size"))
     suite.schedule_for(3000).apply(expected)
     assert _settings(config) == _settings(expected)
@@ -75,8 +78,10 @@ def test_cpu_preset_is_mode_view_on_the_real_size_suites_schedule(tmp_path: Path
     suite.schedule_for(3000).apply(as_bench)
     assert _settings(as_bench) == _settings(config) and as_bench.pipeline.model.blur_field == field
     view = method_spec("view-k33").make_config(tmp_path, tmp_path / "out")
-    suite.schedule_for(3000).apply(view)
-    assert repr(as_bench.pipeline.model) == repr(view.pipeline.model)
+    assert view.pipeline.model.blur_field == field
+    shake = method_spec("cpu-shake").make_config(tmp_path, tmp_path / "out")
+    suite.schedule_for(3000).apply(shake)
+    assert repr(as_bench.pipeline.model) == repr(shake.pipeline.model)
 
 
 @pytest.mark.parametrize("steps", [2, 7, 100, 999, 1000, 1500, 3001, 7000])

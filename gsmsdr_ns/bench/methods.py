@@ -227,9 +227,18 @@ METHODS: Dict[str, MethodSpec] = {
             "cpu-shake",
             "gsmsdr-cpu + camera shake paths",
             "gsmsdr-cpu",
-            "gsmsdr-cpu with the render margin and a learnt camera rotation path before the per-view kernels",
+            "gsmsdr-cpu with the render margin and a learnt camera rotation path before the per-view kernels, named "
+            "(the preset's since the paths paid; the published shake suites name it)",
             render_margin=True,
             camera_shake=True,
+        ),  # fmt: skip
+        _method(
+            "cpu-kernels",
+            "gsmsdr-cpu, per-view kernels alone",
+            "gsmsdr-cpu",
+            "gsmsdr-cpu without the camera rotation paths and the render margin (the preset before they paid)",
+            render_margin=False,
+            camera_shake=False,
         ),  # fmt: skip
         _method(
             "full-cells4",
