@@ -72,14 +72,15 @@ class DegradationConfig:
     """Images that may be motion-blurred (records name motion, or the kind of blur is unknown) are first blurred
     along a learnt camera rotation path (:class:`~gsmsdr_ns.blur.shake.CameraShake`, optimizer group
     ``blur_shake``), then by the field: a turning camera blurs every pixel along its own path, which roll makes
-    vary across the image. Off by default: on the real-photo suite's shaken fern it did not beat the field alone
-    (docs/design.md)."""
+    vary across the image. Off by default (on the real-photo suite's 117x86 shaken fern it did not beat the field
+    alone); on in ``gsmsdr-cpu``, where it gained 0.7 dB at 458-600 px (docs/design.md)."""
     shake_samples: int = 9
     """Time samples of the exposure the render is warped to along the rotation path."""
     render_margin: bool = False
     """Render the current kernel's half-width beyond every border of a blurred image and crop after blurring: a
     photo's border pixels are blurred with what lay just outside the frame, which replicate padding cannot know.
-    Off by default: on the real-photo suite's shaken fern it moved PSNR within the seed noise (docs/design.md)."""
+    Off by default (on the real-photo suite's shaken fern it moved PSNR within the seed noise); on in ``gsmsdr-cpu``,
+    with ``camera_shake`` (docs/design.md)."""
     resolution_kernel_size: int = 3
     """Size of the learned residual kernel of the resolution-loss model (images of known lower resolution)."""
     mask_reg_weight: float = 0.001
