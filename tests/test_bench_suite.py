@@ -21,6 +21,7 @@ from gsmsdr_ns.bench.methods import METHODS
 from gsmsdr_ns.bench.records import finished_record, record_path
 from gsmsdr_ns.bench.runner import run_suite
 from gsmsdr_ns.bench.suite_config import RunKey, SuiteConfigError, find_suite_file, load_suite
+from gsmsdr_ns.plugin.schedule import TrainingSchedule
 
 BIN = Path(sys.executable).parent
 REPO = Path(__file__).resolve().parents[1]
@@ -181,7 +182,8 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
                             "full-lens-unknown", "full-paper-loss", "full-lens-paper-loss",
                             "full-margin", "full-shake", "full-true",
                             "full-per-pixel", "full-fallback", "full-fallback-coarse", "full-anchor", "full-lens-early",
-                            "full-grid4k", "full-cells4", "cpu-poses", "cpu-shake", "cpu-kernels", "-view", "view",
+                            "full-grid4k", "full-cells4", "cpu-poses", "cpu-shake", "cpu-kernels", "cpu-shake-decay",
+                            "cpu-decay", "-view", "view",
                             "view-k25", "view-k33", "view-k49", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite",
                             "gsmsdr-cpu", "sharp-degraded-poses", "sharp"}  # fmt: skip
 
@@ -238,6 +240,20 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert repr(model("cpu-shake")) == repr(model("gsmsdr-cpu"))
     assert not options["cpu-kernels"].camera_shake and not options["cpu-kernels"].render_margin
     assert model("cpu-kernels").blur_field == model("gsmsdr-cpu").blur_field
+    # learning-rate decays: the suite's schedule scales them to its steps
+    preset = METHODS["gsmsdr-cpu"].make_config(tmp_path, tmp_path / "out")
+    TrainingSchedule.bench(1200).apply(preset)
+    for name, decayed in (("gsmsdr-cpu", set()), ("cpu-shake-decay", {"blur_shake"}),
+                          ("cpu-decay", {"blur_shake", "blur_view_kernels"})):  # fmt: skip
+        config = METHODS[name].make_config(tmp_path, tmp_path / "out")
+        TrainingSchedule.bench(1200).apply(config)
+        assert repr(config.pipeline.model) == repr(preset.pipeline.model)
+        for group in ("blur_shake", "blur_view_kernels"):
+            scheduler = config.optimizers[group]["scheduler"]
+            assert (scheduler is not None) == (group in decayed)
+            if scheduler is not None:
+                assert (scheduler.max_steps, scheduler.warmup_steps) == (1200, 0)
+                assert scheduler.lr_final == config.optimizers[group]["optimizer"].lr / 100
     assert not options["full"].thin_lens_for_unknown_kind
     paper_loss, full = options["full-paper-loss"], options["full"]
     assert paper_loss.deconvolved_loss_weight == 0 < full.deconvolved_loss_weight

@@ -56,6 +56,18 @@ def set_pose_refinement(model, views: str) -> None:
         model.camera_optimizer_views = views
 
 
+def set_lr_decay(config, group: str, lr_final: float) -> None:
+    """Give the optimizer group ``group`` of a TrainerConfig an exponential decay to ``lr_final`` over its steps
+    (no warm-up)."""
+    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+
+    if group not in config.optimizers:
+        raise ValueError(f"no optimizer group {group!r}; valid: {', '.join(sorted(config.optimizers))}")
+    config.optimizers[group]["scheduler"] = ExponentialDecaySchedulerConfig(
+        lr_final=lr_final, max_steps=config.max_num_iterations, warmup_steps=0
+    )
+
+
 @dataclass(frozen=True)
 class MethodSpec:
     """How one suite method differs from its base preset."""
@@ -83,6 +95,9 @@ class MethodSpec:
     pose_refinement: Optional[str] = None
     """The camera optimizer: None keeps the base preset's (off, as in splatfacto), "off", "degraded" (the views with
     a degradation model) or "all" (every training view)."""
+    lr_final: Tuple[Tuple[str, float], ...] = ()
+    """(optimizer group, final rate): the group's rate decays exponentially from the preset's to this one over the
+    run (the suite's schedule scales the decay to its steps)."""
 
     def make_config(self, data: Path, output_dir: Path):
         """The TrainerConfig of this method on ``data`` (schedules not yet shortened)."""
@@ -94,6 +109,8 @@ class MethodSpec:
             )
         if self.pose_refinement is not None:
             set_pose_refinement(model, self.pose_refinement)
+        for group, final in self.lr_final:
+            set_lr_decay(config, group, final)
         return config
 
     @property
@@ -231,6 +248,24 @@ METHODS: Dict[str, MethodSpec] = {
             "(the preset's since the paths paid; the published shake suites name it)",
             render_margin=True,
             camera_shake=True,
+        ),  # fmt: skip
+        MethodSpec(
+            "cpu-shake-decay",
+            "gsmsdr-cpu, shake paths' rate decayed",
+            "gsmsdr-cpu",
+            (),
+            False,
+            "gsmsdr-cpu with the camera rotation paths' learning rate decayed 100x over the run (1e-1 to 1e-3)",
+            lr_final=(("blur_shake", 1e-3),),
+        ),  # fmt: skip
+        MethodSpec(
+            "cpu-decay",
+            "gsmsdr-cpu, shake and kernel rates decayed",
+            "gsmsdr-cpu",
+            (),
+            False,
+            "gsmsdr-cpu with the rotation paths' and per-view kernels' learning rates decayed 100x over the run",
+            lr_final=(("blur_shake", 1e-3), ("blur_view_kernels", 3e-4)),
         ),  # fmt: skip
         _method(
             "cpu-kernels",

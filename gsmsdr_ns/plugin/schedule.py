@@ -44,8 +44,9 @@ class TrainingSchedule:
     """Opacity reset interval in refinement rounds (10**6: no reset in a short run; splatfacto: 30)."""
     densify_grad_thresh: float = 0.002
     """Higher than splatfacto's 0.0008 to keep the Gaussian count CPU-sized."""
-    lr_schedulers: Tuple[str, ...] = ("means", "camera_opt", "bilateral_grid")
-    """Optimizer groups whose learning-rate scheduler is scaled to ``steps`` (warm-up capped at a tenth of them)."""
+    lr_schedulers: Tuple[str, ...] = ("means", "camera_opt", "bilateral_grid", "blur_shake", "blur_view_kernels")
+    """Optimizer groups whose learning-rate scheduler is scaled to ``steps`` (warm-up capped at a tenth of them);
+    groups without a scheduler keep their constant rate."""
 
     def __post_init__(self) -> None:
         if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 1:
