@@ -11,7 +11,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from gsmsdr_ns.blur.shake import CameraShake, apply_camera_shake, rotation_homographies, shake_basis
+from gsmsdr_ns.blur.shake import (
+    CameraShake,
+    apply_camera_shake,
+    apply_camera_shake_with_depth,
+    rotation_homographies,
+    shake_basis,
+    shake_sample_grid,
+)
 
 K = torch.tensor([[60.0, 0.0, 32.0], [0.0, 60.0, 24.0], [0.0, 0.0, 1.0]])  # 64 x 48, principal point at the centre
 
@@ -111,3 +118,61 @@ def test_initial_paths_are_small_and_leave_the_global_random_stream_alone():
     rotvecs = shake.rotvecs(torch.tensor([2]), centred=True)
     assert rotvecs.shape == (9, 3) and 0 < float(rotvecs.abs().max()) < 0.01
     assert torch.equal(CameraShake(6, num_samples=9).coefficients, shake.coefficients)  # seeded: reproducible
+
+
+def test_the_depth_grid_without_translation_is_the_rotation_homography():
+    """With zero translations the depth-aware warp reads where the homography warp reads, whatever the depth."""
+    image = textured(2)
+    rotvecs = torch.tensor([[0.01, -0.02, 0.03], [0.0, 0.0, 0.0], [-0.02, 0.01, -0.01]])
+    depth = 0.5 + torch.rand(48, 64, generator=torch.Generator().manual_seed(0)) * 4.0
+    grid = shake_sample_grid(K, rotvecs, torch.zeros(3, 3), depth)
+    assert grid.shape == (3, 48, 64, 2)
+    by_depth = apply_camera_shake_with_depth(image, grid, linear_light=True)
+    by_homography = apply_camera_shake(image, rotation_homographies(K, rotvecs), linear_light=True)
+    assert torch.allclose(by_depth, by_homography, atol=1e-4)
+
+
+def test_a_translation_moves_near_points_further_than_far_ones():
+    """A sideways move of c scene units shifts a pixel at depth z by f c / z: 2 px at depth 1.5, 1 px at depth 3."""
+    depth = torch.full((48, 64), 1.5)
+    depth[:, 32:] = 3.0
+    grid = shake_sample_grid(K, torch.zeros(2, 3), torch.tensor([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]]), depth)
+    pixels_x = (grid[..., 0] + 1.0) * (64 - 1) / 2.0
+    pixels_y = (grid[..., 1] + 1.0) * (48 - 1) / 2.0
+    columns = torch.arange(64, dtype=torch.float32).expand(48, 64)
+    assert torch.allclose(pixels_x[0], columns, atol=1e-4)
+    shift = pixels_x[1] - columns
+    assert torch.allclose(shift[:, :32], torch.full((48, 32), 2.0), atol=1e-4)
+    assert torch.allclose(shift[:, 32:], torch.full((48, 32), 1.0), atol=1e-4)
+    assert torch.allclose(pixels_y[1], torch.arange(48, dtype=torch.float32)[:, None].expand(48, 64), atol=1e-4)
+
+
+def test_a_translating_shake_path_needs_depth_and_learns_from_the_start():
+    """The translation path starts at rest, is fitted from a blur made by a moving camera over two depths (which
+    no rotation path can make), and the module refuses to run without the render's depth."""
+    image = textured(3)
+    view = torch.tensor([0])
+    depth = torch.full((48, 64), 1.0)
+    depth[24:] = 3.0
+    truth = CameraShake(1, num_samples=9, initial_radians=0.0, translation=True)
+    with torch.no_grad():
+        truth.translation_coefficients.copy_(torch.tensor([[[6.0, 0.0, 0.0], [0.0, 3.0, 0.0], [2.0, 0.0, 0.0]]]))
+    target = truth(image, K, view, centred=True, depth=depth).detach()
+    model = CameraShake(1, num_samples=9, seed=3, translation=True)
+    assert model.translation_coefficients is not None and float(model.translation_coefficients.abs().sum()) == 0
+    assert CameraShake(1).translation_coefficients is None
+    with pytest.raises(ValueError, match="depth"):
+        model(image, K, view, centred=True)
+    inner = (Ellipsis, slice(6, -6), slice(6, -6))
+
+    def loss() -> torch.Tensor:
+        return ((model(image, K, view, centred=True, depth=depth) - target)[inner] ** 2).mean()
+
+    first = loss()
+    optimiser = torch.optim.Adam(model.parameters(), lr=0.1, eps=1e-8)
+    for _ in range(200):
+        optimiser.zero_grad()
+        value = loss()
+        value.backward()
+        optimiser.step()
+    assert float(loss()) < 0.05 * float(first)

@@ -430,6 +430,28 @@ def test_camera_shake_runs_on_views_that_may_be_shaken_and_learns():
     assert no_motion.degradation.camera_shake is None and "blur_shake" not in no_motion.get_param_groups()
 
 
+def test_a_translating_shake_path_renders_depth_and_learns():
+    """With ``shake_translation`` a shaken view's plan asks for depth (mode view reads none otherwise), the render
+    produces it and both the rotation and the translation coefficients of the drawn view get the gradient."""
+    config = DegradationConfig(camera_shake=True, shake_translation=True, warmup=0)
+    model = build({"degradations": records("motion", 2) + records("sharp", 1)}, n=3, num_downscales=0,
+                  degradation_model=config, blur_field=BlurFieldConfig(mode="view"))  # fmt: skip
+    shake = model.degradation.camera_shake
+    assert shake is not None and shake.translation_coefficients is not None
+    assert model.get_param_groups()["blur_shake"] == [shake.coefficients, shake.translation_coefficients]
+    plans = [model.degradation.plan(i, 1, step=10) for i in range(3)]
+    assert [(p.shake_depth, p.needs_depth) for p in plans] == [(True, True), (True, True), (False, False)]
+    model.train()
+    model.optimizers = None
+    camera = make_camera(look_from([2.0, 0.5, 1.0]), width=32, height=24)
+    camera.metadata = {"cam_idx": 1}
+    outputs = model.get_outputs(camera)
+    assert outputs["rgb_degraded"].shape == (24, 32, 3) and torch.isfinite(outputs["rgb_degraded"]).all()
+    outputs["rgb_degraded"].sum().backward()
+    for grad in (shake.coefficients.grad, shake.translation_coefficients.grad):
+        assert grad is not None and float(grad[1].abs().sum()) > 0 and torch.equal(grad[0], torch.zeros_like(grad[0]))
+
+
 def test_warm_up_follows_the_step_being_rendered():
     """The blur field is skipped until the model's step reaches the warm-up."""
     model = build({"degradations": records("motion")}, degradation_model=DegradationConfig(warmup=3))

@@ -18,7 +18,7 @@ RECORD_VERSION = 1
 """Bumped when a record's meaning changes: older records are then rerun instead of reused."""
 
 
-ADDED_AT_NEUTRAL: Dict[str, Any] = {"feature_grid_cells": 0}
+ADDED_AT_NEUTRAL: Dict[str, Any] = {"feature_grid_cells": 0, "shake_translation": False}
 """Config fields added after records were made, each with the value that trains exactly as before: left out of
 :func:`preset_fingerprint` at that value, so adding them does not rerun every record (another value changes it)."""
 

@@ -268,6 +268,20 @@ METHODS: Dict[str, MethodSpec] = {
             lr_final=(("blur_shake", 1e-3), ("blur_view_kernels", 3e-4)),
         ),  # fmt: skip
         _method(
+            "cpu-shake17",
+            "gsmsdr-cpu, 17 shake samples",
+            "gsmsdr-cpu",
+            "gsmsdr-cpu with the render warped to 17 time samples of each rotation path instead of 9",
+            shake_samples=17,
+        ),  # fmt: skip
+        _method(
+            "cpu-shake-move",
+            "gsmsdr-cpu + translating shake paths",
+            "gsmsdr-cpu",
+            "gsmsdr-cpu whose shake paths also move the camera (the warp reads the render's depth)",
+            shake_translation=True,
+        ),  # fmt: skip
+        _method(
             "cpu-kernels",
             "gsmsdr-cpu, per-view kernels alone",
             "gsmsdr-cpu",

@@ -76,6 +76,9 @@ class DegradationConfig:
     alone); on in ``gsmsdr-cpu``, where it gained 0.7 dB at 458-600 px (docs/design.md)."""
     shake_samples: int = 9
     """Time samples of the exposure the render is warped to along the rotation path."""
+    shake_translation: bool = False
+    """With ``camera_shake``, also learn a camera translation path per view: a moving camera blurs near points more
+    than far ones, so the warp reads the render's depth (rendered for these steps, not differentiated through)."""
     render_margin: bool = False
     """Render the current kernel's half-width beyond every border of a blurred image and crop after blurring: a
     photo's border pixels are blurred with what lay just outside the frame, which replicate padding cannot know.

@@ -151,7 +151,7 @@ class DegradationModel(nn.Module):
                 self.fallback = ExplanationGate(num_views, config.fallback_decay, config.fallback_margin)
         self.camera_shake: Optional[CameraShake] = None
         if self.blur_field is not None and config.camera_shake and any(p.motion for p in self.profiles):
-            self.camera_shake = CameraShake(num_views, config.shake_samples)
+            self.camera_shake = CameraShake(num_views, config.shake_samples, translation=config.shake_translation)
         mixres = [p for p in self.profiles if p.needs_resolution_model]
         if mixres:
             upsample = Counter(p.mixres_upsample for p in mixres).most_common(1)[0][0]
@@ -273,6 +273,7 @@ class DegradationModel(nn.Module):
             render_downscale=render_downscale,
             blur_field=runs_field,
             shake=self.camera_shake is not None and profile.motion,
+            shake_depth=self.camera_shake is not None and profile.motion and config.shake_translation,
             margin=blur_scale.kernel_size // 2 if config.render_margin else 0,
             deconvolved_loss=(runs_field or (lens and config.deconvolved_loss_on_lens))
             and config.deconvolved_loss_weight > 0,
@@ -322,7 +323,8 @@ class DegradationModel(nn.Module):
             assert self.camera_shake is not None and self.blur_field is not None and K is not None
             centred = not self.profiles[plan.view_id].exact_pose
             linear_light = self.config.linear_light
-            image = timed("kernels", self.camera_shake, image, K, view_ids, centred, linear_light)
+            shake_depth = None if depth is None or not plan.shake_depth else depth[..., 0]
+            image = timed("kernels", self.camera_shake, image, K, view_ids, centred, linear_light, shake_depth)
         if plan.blur_scale is not None:
             assert self.blur_field is not None
             stages = self._lens_then_field(

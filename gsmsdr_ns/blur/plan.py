@@ -32,6 +32,8 @@ class DegradationPlan(NamedTuple):
     alone."""
     shake: bool = False
     """The render is first blurred along the view's learnt camera rotation path (the image may be shaken)."""
+    shake_depth: bool = False
+    """The shake path moves the camera too: its warp reads the render's depth."""
     margin: int = 0
     """Pixels the render reaches beyond each border of the image (:meth:`DegradationModel.forward` blurs the
     enlarged render, then crops them)."""
@@ -49,7 +51,9 @@ class DegradationPlan(NamedTuple):
 
     @property
     def needs_depth(self) -> bool:
-        return self.blur_scale is not None and ((self.blur_uses_depth and self.blur_field) or self.thin_lens)
+        return self.blur_scale is not None and (
+            (self.blur_uses_depth and self.blur_field) or self.thin_lens or self.shake_depth
+        )
 
     @property
     def is_plain(self) -> bool:

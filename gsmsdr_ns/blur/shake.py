@@ -17,17 +17,30 @@ one module (:class:`CameraShake`) holding the coefficients.
 
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from kornia.geometry.transform import warp_perspective
 from torch import Tensor, nn
 
-__all__ = ["CameraShake", "apply_camera_shake", "rotation_homographies", "shake_basis"]
+__all__ = [
+    "CameraShake",
+    "apply_camera_shake",
+    "apply_camera_shake_with_depth",
+    "rotation_homographies",
+    "shake_basis",
+    "shake_sample_grid",
+]
 
 RADIANS_PER_UNIT = 0.01
 """The coefficients are stored in hundredths of a radian: Adam's steps (about the learning rate) then move a path
 by a fraction of a pixel at the focal lengths of photos."""
+
+SCENE_UNITS_PER_UNIT = 0.01
+"""Translation coefficients are stored in hundredths of a scene unit (nerfstudio scales the cameras into [-1, 1]):
+at a depth of one unit a translation moves a pixel as far as the same number of rotation units."""
 
 
 def shake_basis(num_samples: int, centred: bool, dtype: torch.dtype = torch.float32) -> Tensor:
@@ -55,9 +68,7 @@ def rotation_homographies(K: Tensor, rotvecs: Tensor) -> Tensor:
     Returns:
         [T, 3, 3].
     """
-    shift = torch.eye(3, dtype=K.dtype, device=K.device)
-    shift[:2, 2] = -0.5
-    K_index = shift @ K
+    K_index = _index_intrinsics(K)
     R = axis_angle_to_rotation_matrix(rotvecs.to(K.dtype))
     return K_index @ R @ torch.linalg.inv(K_index)
 
@@ -86,6 +97,67 @@ def apply_camera_shake(image: Tensor, homographies: Tensor, linear_light: bool =
     return linear_rgb_to_rgb(out) if linear_light else out
 
 
+def _index_intrinsics(K: Tensor) -> Tensor:
+    """``K`` [3, 3] with the principal point moved to the pixel-index convention (pixel centres at integers)."""
+    shift = torch.eye(3, dtype=K.dtype, device=K.device)
+    shift[:2, 2] = -0.5
+    return shift @ K
+
+
+def shake_sample_grid(K: Tensor, rotvecs: Tensor, translations: Tensor, depth: Tensor) -> Tensor:
+    """Where each pixel of a shaken view reads the sharp render at each time sample, given the render's depth.
+
+    The scene point seen at pixel ``x`` lies at ``X = z(x) K^-1 x``; at time sample ``t`` the camera has turned by
+    ``R_t`` and moved by ``c_t``, so the pixel reads the render at ``K (R_t^T X + c_t)``. Near points move further
+    than far ones under translation; with zero translations this is the rotation homography of
+    :func:`rotation_homographies` (depth cancels).
+
+    Args:
+        K: [3, 3] pinhole intrinsics, principal point in the pixel-edge convention.
+        rotvecs: [T, 3] rotation vectors (radians).
+        translations: [T, 3] camera translations (scene units, camera frame).
+        depth: [H, W] depth of the render along the optical axis (scene units, > 0).
+    Returns:
+        [T, H, W, 2] sampling grid for ``torch.nn.functional.grid_sample`` (x, y in [-1, 1], ``align_corners=True``).
+    """
+    H, W = depth.shape
+    dtype = K.dtype
+    K_index = _index_intrinsics(K)
+    ys, xs = torch.meshgrid(
+        torch.arange(H, dtype=dtype, device=K.device), torch.arange(W, dtype=dtype, device=K.device), indexing="ij"
+    )
+    pixels = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1)  # [H, W, 3]
+    points = (pixels @ torch.linalg.inv(K_index).T) * depth.to(dtype)[..., None]  # [H, W, 3]
+    R_T = axis_angle_to_rotation_matrix(rotvecs.to(dtype)).transpose(-1, -2)  # [T, 3, 3]
+    moved = torch.einsum("tij,hwj->thwi", R_T, points) + translations.to(dtype)[:, None, None, :]
+    projected = moved @ K_index.T  # [T, H, W, 3]
+    uv = projected[..., :2] / projected[..., 2:].clamp_min(1e-6)
+    scale = torch.tensor([2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)], dtype=dtype, device=K.device)
+    return uv * scale - 1.0
+
+
+def apply_camera_shake_with_depth(image: Tensor, grid: Tensor, linear_light: bool = True) -> Tensor:
+    """Average of ``image`` read at each time sample's grid (:func:`shake_sample_grid`).
+
+    Args:
+        image: [1, C, H, W]; sRGB-encoded in [0, 1] when ``linear_light``.
+        grid: [T, H, W, 2].
+        linear_light: average linear light.
+    Returns:
+        [1, C, H, W]. Reads outside the image take its border.
+    """
+    if image.dim() != 4 or image.shape[0] != 1:
+        raise ValueError(f"image must be [1, C, H, W], got {list(image.shape)}")
+    source = rgb_to_linear_rgb(image) if linear_light else image
+    T = grid.shape[0]
+    _, C, H, W = source.shape
+    warped = torch.nn.functional.grid_sample(
+        source.expand(T, C, H, W), grid.to(source.dtype), mode="bilinear", padding_mode="border", align_corners=True
+    )
+    out = warped.mean(dim=0, keepdim=True)
+    return linear_rgb_to_rgb(out) if linear_light else out
+
+
 class CameraShake(nn.Module):
     """One learnt rotation path per training view (cubic in time, see the module docstring).
 
@@ -95,12 +167,16 @@ class CameraShake(nn.Module):
         initial_radians: standard deviation of the random initial coefficients. A path of exactly zero gets no
             gradient (blur is even in the path), so each starts as a small random curve.
         seed: seed of the initial coefficients' generator (the global random stream is left alone).
+        translation: also learn a camera translation path per view (cubic, the same basis): the blur then depends
+            on the render's depth, which :meth:`forward` needs.
     """
 
     basis_through_pose: Tensor  # buffers (register_buffer in __init__)
     basis_centred: Tensor
 
-    def __init__(self, num_views: int, num_samples: int = 9, initial_radians: float = 1e-3, seed: int = 0) -> None:
+    def __init__(
+        self, num_views: int, num_samples: int = 9, initial_radians: float = 1e-3, seed: int = 0, translation: bool = False
+    ) -> None:
         super().__init__()
         if num_views < 1:
             raise ValueError(f"num_views must be >= 1, got {num_views}")
@@ -108,6 +184,8 @@ class CameraShake(nn.Module):
         generator = torch.Generator().manual_seed(seed)
         init = torch.randn(num_views, 3, 3, generator=generator) * (initial_radians / RADIANS_PER_UNIT)
         self.coefficients = nn.Parameter(init)  # [V, basis, axis]
+        # starts at rest: the rotation path's random start already gives the translations a gradient
+        self.translation_coefficients = nn.Parameter(torch.zeros(num_views, 3, 3)) if translation else None
         self.register_buffer("basis_through_pose", shake_basis(self.num_samples, centred=False), persistent=False)
         self.register_buffer("basis_centred", shake_basis(self.num_samples, centred=True), persistent=False)
 
@@ -116,6 +194,29 @@ class CameraShake(nn.Module):
         basis = self.basis_centred if centred else self.basis_through_pose
         return RADIANS_PER_UNIT * (basis @ self.coefficients[view_ids[0]])
 
-    def forward(self, image: Tensor, K: Tensor, view_ids: Tensor, centred: bool, linear_light: bool = True) -> Tensor:
-        """The render ``image`` [1, C, H, W] (intrinsics ``K`` [3, 3]) blurred along view ``view_ids`` [1]'s path."""
-        return apply_camera_shake(image, rotation_homographies(K, self.rotvecs(view_ids, centred)), linear_light)
+    def translations(self, view_ids: Tensor, centred: bool) -> Tensor:
+        """Camera translations along view ``view_ids[0]``'s path -> [T, 3] (scene units); zeros without
+        ``translation``."""
+        basis = self.basis_centred if centred else self.basis_through_pose
+        if self.translation_coefficients is None:
+            return basis.new_zeros(basis.shape[0], 3)
+        return SCENE_UNITS_PER_UNIT * (basis @ self.translation_coefficients[view_ids[0]])
+
+    def forward(
+        self,
+        image: Tensor,
+        K: Tensor,
+        view_ids: Tensor,
+        centred: bool,
+        linear_light: bool = True,
+        depth: Optional[Tensor] = None,
+    ) -> Tensor:
+        """The render ``image`` [1, C, H, W] (intrinsics ``K`` [3, 3]) blurred along view ``view_ids`` [1]'s path;
+        with ``translation``, ``depth`` [H, W] is the render's depth (not differentiated through)."""
+        rotvecs = self.rotvecs(view_ids, centred)
+        if self.translation_coefficients is None:
+            return apply_camera_shake(image, rotation_homographies(K, rotvecs), linear_light)
+        if depth is None:
+            raise ValueError("a camera shake path with translation needs the render's depth")
+        grid = shake_sample_grid(K, rotvecs, self.translations(view_ids, centred), depth.detach().clamp_min(1e-3))
+        return apply_camera_shake_with_depth(image, grid, linear_light)
