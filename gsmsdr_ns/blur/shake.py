@@ -175,7 +175,12 @@ class CameraShake(nn.Module):
     basis_centred: Tensor
 
     def __init__(
-        self, num_views: int, num_samples: int = 9, initial_radians: float = 1e-3, seed: int = 0, translation: bool = False
+        self,
+        num_views: int,
+        num_samples: int = 9,
+        initial_radians: float = 1e-3,
+        seed: int = 0,
+        translation: bool = False,
     ) -> None:
         super().__init__()
         if num_views < 1:
