@@ -382,6 +382,12 @@ def test_a_checkpoint_with_or_without_camera_shake_paths_names_the_flag_to_load_
     ):
         with_paths.load_state_dict(without.state_dict())
     with_paths.load_state_dict(motion_model(shake=True).state_dict())  # the same config loads
+    moving = _model(gsmsdr_trainer_config, degradation="motion",
+                    degradation_model=DegradationConfig(camera_shake=True, shake_translation=True))  # fmt: skip
+    with pytest.raises(CheckpointMismatchError, match=r"move the camera, .*degradation-model.shake-translation True\)"):
+        with_paths.load_state_dict(moving.state_dict())
+    with pytest.raises(CheckpointMismatchError, match=r"only turn the camera, .*shake-translation False\)"):
+        moving.load_state_dict(with_paths.state_dict())
 
 
 def test_the_gsmsdr_lite_trainer_names_a_gsmsdr_checkpoint_and_its_method(trained_run: TrainedRun, tmp_path):

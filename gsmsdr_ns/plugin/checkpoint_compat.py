@@ -286,7 +286,7 @@ def check_thin_lens(layout: CheckpointLayout, model_state: State, checkpoint_sta
 
 def check_camera_shake(layout: CheckpointLayout, model_state: State, checkpoint_state: State) -> None:
     """Raise :class:`CheckpointMismatchError` naming the flag to load with when the checkpoint has learnt camera
-    shake paths this model does not build, or the other way round."""
+    shake paths (or their translations) this model does not build, or the other way round."""
     _check_optional_part(
         model_state,
         checkpoint_state,
@@ -295,6 +295,16 @@ def check_camera_shake(layout: CheckpointLayout, model_state: State, checkpoint_
         "--pipeline.model.degradation-model.camera-shake True)",
         "has no camera shake paths, but this run's config builds them (add "
         "--pipeline.model.degradation-model.camera-shake False)",
+    )
+    translation_key = layout.camera_shake_key.rsplit(".", 1)[0] + ".translation_coefficients"
+    _check_optional_part(
+        model_state,
+        checkpoint_state,
+        translation_key,
+        "has camera shake paths that move the camera, which this run's config does not build (add "
+        "--pipeline.model.degradation-model.shake-translation True)",
+        "has camera shake paths that only turn the camera, but this run's config also moves it (add "
+        "--pipeline.model.degradation-model.shake-translation False)",
     )
 
 
