@@ -24,9 +24,10 @@ def test_constant_cost_is_the_remaining_steps_times_the_step_time():
 
 
 def test_later_resolution_stages_cost_their_pixel_ratio_to_the_exponent():
-    # three stages at 1/16, 1/4 and all of the pixels; a step costs pixels ** 0.55 (the estimate's model)
+    # three stages at 1/16, 1/4 and all of the pixels; a step costs pixels ** the estimate's exponent
     schedule = StepSchedule(300, (0, 100, 200), (100.0, 400.0, 1600.0))
-    cost = [0.01 * (schedule.stage_pixels[schedule.stage(s)] / 100.0) ** 0.55 for s in range(300)]
+    exponent = TimeEstimate(schedule).pixel_exponent
+    cost = [0.01 * (schedule.stage_pixels[schedule.stage(s)] / 100.0) ** exponent for s in range(300)]
     for done in (50, 150, 250):
         estimate = TimeEstimate(schedule)
         feed(estimate, cost, upto=done)
@@ -78,7 +79,7 @@ def test_format_duration():
 
 def test_replay_of_recorded_traces(tmp_path):
     schedule = StepSchedule(200, (0, 100), (100.0, 400.0))
-    times = [0.01] * 100 + [0.01 * 4**0.55] * 100
+    times = [0.01] * 100 + [0.01 * 4 ** TimeEstimate(schedule).pixel_exponent] * 100
     record = {"id": "scene__full__200__s0", "step_trace": {"seconds": times, "gaussians": [500] * 200},
               "step_schedule": dataclasses.asdict(schedule)}  # fmt: skip
     (tmp_path / "runs").mkdir()
