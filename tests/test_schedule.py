@@ -11,6 +11,7 @@ import pytest
 from gsmsdr_ns.bench.methods import method_spec
 from gsmsdr_ns.demo import demo_trainer_config
 from gsmsdr_ns.plugin.method_config import (
+    CPU_SCHEDULE,
     LITE_MAX_STEPS,
     gsmsdr_cpu_trainer_config,
     gsmsdr_lite_trainer_config,
@@ -59,8 +60,9 @@ def test_demo_preset_values(tmp_path: Path) -> None:
 
 def test_cpu_preset_is_mode_view_on_the_real_size_suites_schedule(tmp_path: Path) -> None:
     """gsmsdr-cpu = the gsmsdr preset with one kernel per view (9 / 17 / 33 px) after a camera rotation path (with
-    the render margin), trained on the real-size suite's schedule; so the suite's `gsmsdr-cpu` row trains the preset
-    as ns-train does (`view-k33`'s field, `cpu-shake`'s model)."""
+    the render margin), trained on the real-size suite's schedule at 6000 steps; so the suite's `gsmsdr-cpu` row at
+    those steps trains the preset as ns-train does (`view-k33`'s field, `cpu-shake`'s model)."""
+    assert CPU_SCHEDULE.steps == 6000
     from gsmsdr_ns.bench.suite_config import find_suite_file, load_suite
 
     config = gsmsdr_cpu_trainer_config()
@@ -71,16 +73,16 @@ def test_cpu_preset_is_mode_view_on_the_real_size_suites_schedule(tmp_path: Path
     expected.pipeline.model.blur_field = field
     expected.pipeline.model.degradation_model = degradation
     suite = load_suite(find_suite_file("real-size"))
-    suite.schedule_for(3000).apply(expected)
+    suite.schedule_for(CPU_SCHEDULE.steps).apply(expected)
     assert _settings(config) == _settings(expected)
     assert repr(config.pipeline.model) == repr(expected.pipeline.model)
     as_bench = method_spec("gsmsdr-cpu").make_config(tmp_path, tmp_path / "out")
-    suite.schedule_for(3000).apply(as_bench)
+    suite.schedule_for(CPU_SCHEDULE.steps).apply(as_bench)
     assert _settings(as_bench) == _settings(config) and as_bench.pipeline.model.blur_field == field
     view = method_spec("view-k33").make_config(tmp_path, tmp_path / "out")
     assert view.pipeline.model.blur_field == field
     shake = method_spec("cpu-shake").make_config(tmp_path, tmp_path / "out")
-    suite.schedule_for(3000).apply(shake)
+    suite.schedule_for(CPU_SCHEDULE.steps).apply(shake)
     assert repr(as_bench.pipeline.model) == repr(shake.pipeline.model)
 
 

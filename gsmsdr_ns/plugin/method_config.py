@@ -12,7 +12,7 @@ schedules shortened to match). Its field has half the channels of the default on
 less; a sharp-image step does not run the field in either preset.
 
 ``gsmsdr-cpu``: one learnt kernel per view and scale (blur field mode ``view``: no feature network) of 9 / 17 / 33
-px, with the thin lens for defocus, on the benchmark suites' 3000-step schedule (:class:`TrainingSchedule`, 1/4 ->
+px, with the thin lens for defocus, on the benchmark suites' schedule at 6000 steps (:class:`TrainingSchedule`, 1/4 ->
 1/2 -> full resolution over the first half, densification over the first half with a CPU-sized threshold). On the
 shaken fern at 458x333 (``configs/bench/real-size.yaml``, blur of 13-27 px) mode ``view`` equalled the MAAN field's
 test PSNR with the preset's 17 px kernels (23.72 vs 23.71 dB) at 42 % of its training time; 25 px kernels, which
@@ -26,6 +26,9 @@ Views that may be shaken are first warped along a learnt camera rotation path (`
 view cannot follow. With the paths the preset gained 0.68 dB on the shaken fern (24.58 against 23.90) and 0.71 dB
 on the generated 600x400 strong shake (21.64 against 20.93), seed 0, 3000 steps, at 1.36x and 1.18x the training
 time (docs/results/real-size/shake); the fern was still gaining at 3000 steps (+0.40 dB over the last quarter).
+At 6000 steps the preset reached 25.44 dB on the fern (plain Gaussians 23.47 at 6000 steps) and 21.81 on the
+600x400 scene (flat over its last quarter), whole runs of 58 and 68 min on one thread
+(docs/results/real-size/long-shake): the preset trains 6000 steps.
 
 All train with :class:`GSMSDRTrainer` (nerfstudio's Trainer with atomic checkpoints and checked checkpoint loading).
 
@@ -54,8 +57,8 @@ from gsmsdr_ns.plugin.trainer import GSMSDRTrainerConfig
 
 MAX_STEPS = 30000
 LITE_MAX_STEPS = 7000
-CPU_SCHEDULE = TrainingSchedule(steps=3000, num_downscales=2, densify_grad_thresh=0.002)
-"""``gsmsdr-cpu``'s schedule: the real-size suite's (configs/bench/real-size.yaml)."""
+CPU_SCHEDULE = TrainingSchedule(steps=6000, num_downscales=2, densify_grad_thresh=0.002)
+"""``gsmsdr-cpu``'s schedule: the real-size suite's (configs/bench/real-size.yaml) at 6000 steps."""
 
 
 def default_device_type() -> str:
@@ -142,7 +145,7 @@ def gsmsdr_lite_trainer_config() -> GSMSDRTrainerConfig:
 def gsmsdr_cpu_trainer_config() -> GSMSDRTrainerConfig:
     """A fresh ``gsmsdr-cpu`` trainer config (``ns-train gsmsdr-cpu``): a learnt camera rotation path and per-view
     kernels of up to 33 px on views that may be shaken (rendered with a margin), the thin lens for defocus, on the
-    3000-step :data:`CPU_SCHEDULE`, for real-size captures on a CPU."""
+    6000-step :data:`CPU_SCHEDULE`, for real-size captures on a CPU."""
     model = GSMSDRModelConfig(
         blur_field=BlurFieldConfig(mode="view", kernel_sizes=(9, 17, 33)),
         degradation_model=DegradationConfig(render_margin=True, camera_shake=True),
