@@ -30,6 +30,15 @@ def textured(seed: int = 0, height: int = 48, width: int = 64) -> torch.Tensor:
     return F.interpolate(coarse, size=(height, width), mode="bilinear", align_corners=False)
 
 
+def fit(model: torch.nn.Module, loss, steps: int) -> None:
+    """``steps`` Adam steps (the preset's path rate, 0.1) on ``loss()``."""
+    optimiser = torch.optim.Adam(model.parameters(), lr=0.1, eps=1e-8)
+    for _ in range(steps):
+        optimiser.zero_grad()
+        loss().backward()
+        optimiser.step()
+
+
 def apply_h(H: torch.Tensor, xy) -> torch.Tensor:
     p = H @ torch.tensor([xy[0], xy[1], 1.0], dtype=H.dtype)
     return p[:2] / p[2]
@@ -100,12 +109,7 @@ def test_a_shake_path_is_learnt_back_from_the_photo_it_blurred():
     first = loss()
     first.backward()
     assert model.coefficients.grad is not None and float(model.coefficients.grad.abs().sum()) > 0
-    optimiser = torch.optim.Adam(model.parameters(), lr=0.1, eps=1e-8)
-    for _ in range(150):
-        optimiser.zero_grad()
-        value = loss()
-        value.backward()
-        optimiser.step()
+    fit(model, loss, steps=150)
     assert float(loss()) < 0.02 * float(first)
 
 
@@ -169,10 +173,5 @@ def test_a_translating_shake_path_needs_depth_and_learns_from_the_start():
         return ((model(image, K, view, centred=True, depth=depth) - target)[inner] ** 2).mean()
 
     first = loss()
-    optimiser = torch.optim.Adam(model.parameters(), lr=0.1, eps=1e-8)
-    for _ in range(200):
-        optimiser.zero_grad()
-        value = loss()
-        value.backward()
-        optimiser.step()
+    fit(model, loss, steps=200)
     assert float(loss()) < 0.05 * float(first)
