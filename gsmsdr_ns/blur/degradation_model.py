@@ -264,6 +264,7 @@ class DegradationModel(nn.Module):
             blur_scale = blur_scale if runs_field else None  # an image the lens models alone waits for it
         if field is None or blur_scale is None:
             return DegradationPlan(view_id, resolution_factor=factor, render_downscale=render_downscale, has_model=True)
+        shake = self.camera_shake is not None and profile.motion
         return DegradationPlan(
             view_id=view_id,
             blur_scale=blur_scale,
@@ -272,8 +273,8 @@ class DegradationModel(nn.Module):
             thin_lens=lens,
             render_downscale=render_downscale,
             blur_field=runs_field,
-            shake=self.camera_shake is not None and profile.motion,
-            shake_depth=self.camera_shake is not None and profile.motion and config.shake_translation,
+            shake=shake,
+            shake_depth=shake and config.shake_translation,
             margin=blur_scale.kernel_size // 2 if config.render_margin else 0,
             deconvolved_loss=(runs_field or (lens and config.deconvolved_loss_on_lens))
             and config.deconvolved_loss_weight > 0,

@@ -17,13 +17,14 @@ one module (:class:`CameraShake`) holding the coefficients.
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import Callable, Optional
 
 import torch
 from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from kornia.geometry.transform import warp_perspective
 from torch import Tensor, nn
+from torch.nn.functional import grid_sample
 
 __all__ = [
     "CameraShake",
@@ -83,17 +84,28 @@ def apply_camera_shake(image: Tensor, homographies: Tensor, linear_light: bool =
     Returns:
         [1, C, H, W]. Pixels mapped from outside the image read its border.
     """
-    if image.dim() != 4 or image.shape[0] != 1:
-        raise ValueError(f"image must be [1, C, H, W], got {list(image.shape)}")
+    _check_image(image)
     if homographies.dim() != 3 or homographies.shape[1:] != (3, 3):
         raise ValueError(f"homographies must be [T, 3, 3], got {list(homographies.shape)}")
+
+    def warp(source: Tensor) -> Tensor:
+        _, C, H, W = source.shape
+        stack = source.expand(homographies.shape[0], C, H, W)
+        return warp_perspective(stack, homographies.to(source.dtype), (H, W), padding_mode="border", align_corners=True)
+
+    return _average_warps(image, warp, linear_light)
+
+
+def _check_image(image: Tensor) -> None:
+    if image.dim() != 4 or image.shape[0] != 1:
+        raise ValueError(f"image must be [1, C, H, W], got {list(image.shape)}")
+
+
+def _average_warps(image: Tensor, warp: Callable[[Tensor], Tensor], linear_light: bool) -> Tensor:
+    """Mean over T of ``warp(image)`` [T, C, H, W], in linear light when ``linear_light`` (decode, warp and
+    average, re-encode) -> [1, C, H, W]."""
     source = rgb_to_linear_rgb(image) if linear_light else image
-    T = homographies.shape[0]
-    _, C, H, W = source.shape
-    warped = warp_perspective(
-        source.expand(T, C, H, W), homographies.to(source.dtype), (H, W), padding_mode="border", align_corners=True
-    )
-    out = warped.mean(dim=0, keepdim=True)
+    out = warp(source).mean(dim=0, keepdim=True)
     return linear_rgb_to_rgb(out) if linear_light else out
 
 
@@ -146,16 +158,14 @@ def apply_camera_shake_with_depth(image: Tensor, grid: Tensor, linear_light: boo
     Returns:
         [1, C, H, W]. Reads outside the image take its border.
     """
-    if image.dim() != 4 or image.shape[0] != 1:
-        raise ValueError(f"image must be [1, C, H, W], got {list(image.shape)}")
-    source = rgb_to_linear_rgb(image) if linear_light else image
-    T = grid.shape[0]
-    _, C, H, W = source.shape
-    warped = torch.nn.functional.grid_sample(
-        source.expand(T, C, H, W), grid.to(source.dtype), mode="bilinear", padding_mode="border", align_corners=True
-    )
-    out = warped.mean(dim=0, keepdim=True)
-    return linear_rgb_to_rgb(out) if linear_light else out
+    _check_image(image)
+
+    def warp(source: Tensor) -> Tensor:
+        _, C, H, W = source.shape
+        stack = source.expand(grid.shape[0], C, H, W)
+        return grid_sample(stack, grid.to(source.dtype), mode="bilinear", padding_mode="border", align_corners=True)
+
+    return _average_warps(image, warp, linear_light)
 
 
 class CameraShake(nn.Module):
@@ -194,15 +204,17 @@ class CameraShake(nn.Module):
         self.register_buffer("basis_through_pose", shake_basis(self.num_samples, centred=False), persistent=False)
         self.register_buffer("basis_centred", shake_basis(self.num_samples, centred=True), persistent=False)
 
+    def _basis(self, centred: bool) -> Tensor:
+        return self.basis_centred if centred else self.basis_through_pose
+
     def rotvecs(self, view_ids: Tensor, centred: bool) -> Tensor:
         """Rotation vectors of view ``view_ids[0]``'s path -> [T, 3] (radians)."""
-        basis = self.basis_centred if centred else self.basis_through_pose
-        return RADIANS_PER_UNIT * (basis @ self.coefficients[view_ids[0]])
+        return RADIANS_PER_UNIT * (self._basis(centred) @ self.coefficients[view_ids[0]])
 
     def translations(self, view_ids: Tensor, centred: bool) -> Tensor:
         """Camera translations along view ``view_ids[0]``'s path -> [T, 3] (scene units); zeros without
         ``translation``."""
-        basis = self.basis_centred if centred else self.basis_through_pose
+        basis = self._basis(centred)
         if self.translation_coefficients is None:
             return basis.new_zeros(basis.shape[0], 3)
         return SCENE_UNITS_PER_UNIT * (basis @ self.translation_coefficients[view_ids[0]])

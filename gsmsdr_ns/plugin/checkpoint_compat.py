@@ -75,6 +75,8 @@ class CheckpointLayout(NamedTuple):
     """Key suffix of the thin lens's first tensor."""
     camera_shake_key: str
     """Key suffix of the camera shake paths' first tensor."""
+    shake_translation_key: str
+    """Key suffix of the camera shake paths' translation coefficients."""
     blur_field: BlurFieldConfig
     """The model's blur-field config, from which :func:`width_locations` finds the widths' tensors."""
 
@@ -83,7 +85,7 @@ def reference_degradation(blur_field: BlurFieldConfig) -> DegradationModel:
     """Degradation models of one motion-blurred and one defocused view with everything ``blur_field`` can build:
     thin lens, camera shake paths and every kernel scale. Its state dict has the keys (relative to the degradation
     models) of any checkpoint trained with this config."""
-    everything = DegradationConfig(thin_lens=True, camera_shake=True)
+    everything = DegradationConfig(thin_lens=True, camera_shake=True, shake_translation=True)
     profiles = [DegradationProfile(motion=True), DegradationProfile(defocus=True)]
     return DegradationModel(profiles, blur_field, everything, num_downscales=len(blur_field.kernel_sizes))
 
@@ -95,6 +97,12 @@ def _first_key_of(module: nn.Module, part: type) -> str:
         if isinstance(sub, part):
             return f"{name}.{next(iter(sub.state_dict()))}"
     raise ValueError(f"{type(module).__name__} builds no {part.__name__}")
+
+
+def _translation_coefficients(reference: DegradationModel) -> torch.Tensor:
+    shake = reference.camera_shake
+    assert shake is not None and shake.translation_coefficients is not None  # the reference builds every part
+    return shake.translation_coefficients
 
 
 def _key_of(model: nn.Module, tensor: torch.Tensor) -> str:
@@ -115,6 +123,7 @@ def checkpoint_layout(model: nn.Module, blur_field: BlurFieldConfig) -> Checkpoi
         gaussians_prefix=sh_key.rsplit(".", 1)[0] + ".",
         thin_lens_key=_first_key_of(reference, ThinLensDefocus),
         camera_shake_key=_first_key_of(reference, CameraShake),
+        shake_translation_key=_key_of(reference, _translation_coefficients(reference)),
         blur_field=blur_field,
     )
 
@@ -296,11 +305,10 @@ def check_camera_shake(layout: CheckpointLayout, model_state: State, checkpoint_
         "has no camera shake paths, but this run's config builds them (add "
         "--pipeline.model.degradation-model.camera-shake False)",
     )
-    translation_key = layout.camera_shake_key.rsplit(".", 1)[0] + ".translation_coefficients"
     _check_optional_part(
         model_state,
         checkpoint_state,
-        translation_key,
+        layout.shake_translation_key,
         "has camera shake paths that move the camera, which this run's config does not build (add "
         "--pipeline.model.degradation-model.shake-translation True)",
         "has camera shake paths that only turn the camera, but this run's config also moves it (add "
