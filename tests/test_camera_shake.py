@@ -17,6 +17,7 @@ from gsmsdr_ns.blur.shake import (
     apply_camera_shake_with_depth,
     rotation_homographies,
     shake_basis,
+    shake_mean_kernel,
     shake_sample_grid,
 )
 
@@ -175,3 +176,36 @@ def test_a_translating_shake_path_needs_depth_and_learns_from_the_start():
     first = loss()
     fit(model, loss, steps=200)
     assert float(loss()) < 0.05 * float(first)
+
+
+def test_the_path_kernel_of_a_still_camera_is_a_point_and_a_pan_spreads_it_along_x():
+    """The image-mean kernel of a rotation path: a point for no rotation; for a pan (yaw) a horizontal streak whose
+    spread is the path's (f times the angle, a little more off the axis), centred and summing to 1."""
+    still = shake_mean_kernel(K, torch.zeros(9, 3), 48, 64, 15)
+    assert still.shape == (1, 15, 15) and float(still[0, 7, 7]) == pytest.approx(1.0)
+    tau = shake_basis(9, centred=True)[:, 0]
+    angle = 0.1  # radians over the exposure: 6 px at f = 60
+    rotvecs = torch.zeros(9, 3)
+    rotvecs[:, 1] = angle * tau
+    kernel = shake_mean_kernel(K, rotvecs, 48, 64, 15)[0].double()
+    assert float(kernel.sum()) == pytest.approx(1.0) and bool((kernel >= 0).all())
+    offsets = torch.arange(15, dtype=torch.float64) - 7
+    col, row = kernel.sum(dim=0), kernel.sum(dim=1)
+    mean_x, mean_y = float((col * offsets).sum()), float((row * offsets).sum())
+    var_x = float((col * (offsets - mean_x) ** 2).sum())
+    var_y = float((row * (offsets - mean_y) ** 2).sum())
+    on_axis = float((60.0 * angle * tau).var(unbiased=False))
+    assert abs(mean_x) < 0.05 and abs(mean_y) < 0.05
+    assert on_axis < var_x < 1.8 * on_axis and var_y < 0.1 * var_x
+    with pytest.raises(ValueError, match="max_size"):
+        shake_mean_kernel(K, rotvecs, 48, 64, 14)
+
+
+def test_the_path_kernel_of_a_wide_shake_is_clamped_to_its_window():
+    """A path longer than the window keeps all its mass on the window (border taps), so the loss's kernel still
+    sums to 1."""
+    rotvecs = torch.zeros(9, 3)
+    rotvecs[:, 0] = 1.0 * shake_basis(9, centred=True)[:, 0]  # 60 px of tilt
+    kernel = shake_mean_kernel(K, rotvecs, 48, 64, 9)[0]
+    assert float(kernel.sum()) == pytest.approx(1.0, abs=1e-5)
+    assert float(kernel[0].sum() + kernel[-1].sum()) > 0.3 and bool(torch.isfinite(kernel).all())

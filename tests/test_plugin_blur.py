@@ -425,6 +425,14 @@ def test_camera_shake_runs_on_views_that_may_be_shaken_and_learns():
     outputs["rgb_degraded"].sum().backward()
     grad = shake.coefficients.grad
     assert grad is not None and float(grad[3].abs().sum()) > 0 and torch.equal(grad[:3], torch.zeros_like(grad[:3]))
+    aux, field_size = outputs["degradation"], model.degradation.plan(3, 1, step=10).blur_scale.kernel_size
+    assert aux.kernel_mean.shape == (1, 3 * field_size, 3 * field_size)  # the path's window (2 K + 1) composed in
+    assert float(aux.kernel_mean.sum()) == pytest.approx(1.0, abs=1e-4)
+    config = DegradationConfig(camera_shake=True, warmup=0, deconvolved_loss_on_shake=False)
+    alone = build({"degradations": recs}, num_downscales=0, degradation_model=config)
+    alone.train()
+    alone.optimizers = None
+    assert alone.get_outputs(camera)["degradation"].kernel_mean.shape == (1, field_size, field_size)
     assert build({"degradations": recs}).degradation.camera_shake is None  # off unless asked
     no_motion = build({"degradations": records("defocus")}, degradation_model=DegradationConfig(camera_shake=True))
     assert no_motion.degradation.camera_shake is None and "blur_shake" not in no_motion.get_param_groups()

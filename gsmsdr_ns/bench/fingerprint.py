@@ -18,7 +18,11 @@ RECORD_VERSION = 1
 """Bumped when a record's meaning changes: older records are then rerun instead of reused."""
 
 
-ADDED_AT_NEUTRAL: Dict[str, Any] = {"feature_grid_cells": 0, "shake_translation": False}
+ADDED_AT_NEUTRAL: Dict[str, Any] = {
+    "feature_grid_cells": 0,
+    "shake_translation": False,
+    "deconvolved_loss_on_shake": False,
+}
 """Config fields added after records were made, each with the value that trains exactly as before: left out of
 :func:`preset_fingerprint` at that value, so adding them does not rerun every record (another value changes it)."""
 
@@ -26,6 +30,11 @@ ADDED_AT_NEUTRAL: Dict[str, Any] = {"feature_grid_cells": 0, "shake_translation"
 NETWORK_ONLY = frozenset({"feature_grid_cells"})
 """Fields of :data:`ADDED_AT_NEUTRAL` read only by the field's feature network: left out of the fingerprint of a
 mode ``view`` field (no network) at any value."""
+
+
+SHAKE_ONLY = frozenset({"deconvolved_loss_on_shake"})
+"""Fields of :data:`ADDED_AT_NEUTRAL` read only with camera shake paths: left out of the fingerprint of a model
+without them at any value."""
 
 
 def preset_fingerprint(method: MethodSpec) -> str:
@@ -40,8 +49,10 @@ def preset_fingerprint(method: MethodSpec) -> str:
         optimizers = {k: v for k, v in optimizers.items() if not k.startswith("blur_")}
     text = repr(model) + repr(sorted(optimizers.items()))
     without_network = model.blur_field is not None and model.blur_field.mode == "view"
+    without_shake = model.degradation_model is None or not model.degradation_model.camera_shake
     for name, value in ADDED_AT_NEUTRAL.items():
-        if without_network and name in NETWORK_ONLY:  # any value trains the same: drop it whatever it is
+        if (without_network and name in NETWORK_ONLY) or (without_shake and name in SHAKE_ONLY):
+            # any value trains the same: drop it whatever it is
             text = re.sub(rf"\b{name}=[^,]*, ", "", text)
         text = text.replace(f"{name}={value!r}, ", "")
     return text

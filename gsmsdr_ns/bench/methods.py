@@ -282,6 +282,14 @@ METHODS: Dict[str, MethodSpec] = {
             shake_translation=True,
         ),  # fmt: skip
         _method(
+            "cpu-path-unweighted",
+            "gsmsdr-cpu, path left out of the deconvolved loss",
+            "gsmsdr-cpu",
+            "gsmsdr-cpu whose deconvolved residual loss weighs by the per-view kernels alone, not the rotation path "
+            "composed with them (the preset before the path was composed in)",
+            deconvolved_loss_on_shake=False,
+        ),  # fmt: skip
+        _method(
             "cpu-kernels",
             "gsmsdr-cpu, per-view kernels alone",
             "gsmsdr-cpu",

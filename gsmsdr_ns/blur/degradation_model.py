@@ -320,12 +320,17 @@ class DegradationModel(nn.Module):
         assert plan.view_id is not None
         view_ids = self.view_ids(plan.view_id, image.device)
         aux = DegradationAux(sharp)
+        shake_mean = None
         if plan.shake:
             assert self.camera_shake is not None and self.blur_field is not None and K is not None
             centred = not self.profiles[plan.view_id].exact_pose
             linear_light = self.config.linear_light
             shake_depth = None if depth is None or not plan.shake_depth else depth[..., 0]
             image = timed("kernels", self.camera_shake, image, K, view_ids, centred, linear_light, shake_depth)
+            if plan.deconvolved_loss and self.config.deconvolved_loss_on_shake and plan.blur_scale is not None:
+                height, width = image.shape[-2:]
+                max_size = 2 * plan.blur_scale.kernel_size + 1
+                shake_mean = self.camera_shake.mean_kernel(K, view_ids, centred, height, width, max_size)
         if plan.blur_scale is not None:
             assert self.blur_field is not None
             stages = self._lens_then_field(
@@ -353,6 +358,7 @@ class DegradationModel(nn.Module):
                 if plan.deconvolved_loss:
                     kernel_mean = mean_blend_kernel(stages.kernels, stages.mask)
                     kernel_mean = kernel_mean if lens_mean is None else compose_kernels(lens_mean, kernel_mean)
+                    kernel_mean = kernel_mean if shake_mean is None else compose_kernels(shake_mean, kernel_mean)
                 aux = DegradationAux(
                     sharp,
                     mask=_hwc(crop_margin(stages.mask, plan.margin)),

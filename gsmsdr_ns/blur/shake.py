@@ -32,6 +32,7 @@ __all__ = [
     "apply_camera_shake_with_depth",
     "rotation_homographies",
     "shake_basis",
+    "shake_mean_kernel",
     "shake_sample_grid",
 ]
 
@@ -94,6 +95,50 @@ def apply_camera_shake(image: Tensor, homographies: Tensor, linear_light: bool =
         return warp_perspective(stack, homographies.to(source.dtype), (H, W), padding_mode="border", align_corners=True)
 
     return _average_warps(image, warp, linear_light)
+
+
+@torch.no_grad()
+def shake_mean_kernel(K: Tensor, rotvecs: Tensor, height: int, width: int, max_size: int, probes: int = 5) -> Tensor:
+    """The blur kernel of a rotation path, averaged over the image: what the deconvolved residual loss
+    (:func:`~gsmsdr_ns.ops.deconvolved_loss.deconvolved_residual`) weighs by. Detached.
+
+    Each of ``probes`` x ``probes`` pixels spread over the image moves along the path's homographies; its positions,
+    centred on their mean (a shift does not change the kernel's spectrum magnitude, which is all the loss reads),
+    are splatted bilinearly onto a square grid, and the grids of all probes are averaged.
+
+    Args:
+        K: [3, 3] pinhole intrinsics of the image (as :func:`rotation_homographies`).
+        rotvecs: [T, 3] the path's rotation vectors (radians).
+        height, width: the image's size in pixels.
+        max_size: largest kernel side (odd); positions beyond it are clamped to its border.
+    Returns:
+        [1, max_size, max_size], summing to 1.
+    """
+    if max_size < 1 or max_size % 2 == 0:
+        raise ValueError(f"max_size must be a positive odd integer, got {max_size}")
+    homographies = rotation_homographies(K.double(), rotvecs.detach().double())  # [T, 3, 3]
+    ys = torch.linspace(0.0, height - 1.0, probes, dtype=torch.float64, device=K.device)
+    xs = torch.linspace(0.0, width - 1.0, probes, dtype=torch.float64, device=K.device)
+    grid_y, grid_x = torch.meshgrid(ys, xs, indexing="ij")
+    points = torch.stack([grid_x.flatten(), grid_y.flatten(), torch.ones_like(grid_x.flatten())], dim=0)  # [3, P]
+    moved = homographies @ points  # [T, 3, P]
+    xy = moved[:, :2] / moved[:, 2:3]
+    offsets = xy - xy.mean(dim=0, keepdim=True)  # [T, 2, P], each probe's path centred
+    size = max_size  # fixed, so no device read; zero taps beyond the path leave the spectrum's magnitude alone
+    pos = (offsets + size // 2).clamp(0.0, size - 1.0).permute(0, 2, 1).reshape(-1, 2)  # [T * P, 2] (x, y)
+    low = pos.floor().clamp(max=max(size - 2, 0))
+    frac = pos - low
+    low = low.long()
+    kernel = torch.zeros(size * size, dtype=torch.float64, device=K.device)
+    for dy in (0, 1):
+        for dx in (0, 1):
+            wx = frac[:, 0] if dx else 1.0 - frac[:, 0]
+            wy = frac[:, 1] if dy else 1.0 - frac[:, 1]
+            ix = (low[:, 0] + dx).clamp(max=size - 1)
+            iy = (low[:, 1] + dy).clamp(max=size - 1)
+            kernel.index_add_(0, iy * size + ix, wx * wy)
+    kernel = kernel / kernel.sum()
+    return kernel.reshape(1, size, size).to(K.dtype)
 
 
 def _check_image(image: Tensor) -> None:
@@ -218,6 +263,11 @@ class CameraShake(nn.Module):
         if self.translation_coefficients is None:
             return basis.new_zeros(basis.shape[0], 3)
         return SCENE_UNITS_PER_UNIT * (basis @ self.translation_coefficients[view_ids[0]])
+
+    def mean_kernel(self, K: Tensor, view_ids: Tensor, centred: bool, height: int, width: int, max_size: int) -> Tensor:
+        """[1, max_size, max_size] detached image-mean kernel of view ``view_ids`` [1]'s rotation path
+        (:func:`shake_mean_kernel`; a translation path's depth-dependent part is left out)."""
+        return shake_mean_kernel(K, self.rotvecs(view_ids, centred), height, width, max_size)
 
     def forward(
         self,
