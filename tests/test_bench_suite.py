@@ -183,7 +183,7 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
                             "full-margin", "full-shake", "full-true",
                             "full-per-pixel", "full-fallback", "full-fallback-coarse", "full-anchor", "full-lens-early",
                             "full-grid4k", "full-cells4", "cpu-poses", "cpu-shake", "cpu-kernels", "cpu-shake-decay",
-                            "cpu-decay", "cpu-shake17", "cpu-shake-move", "cpu-path-unweighted", "-view", "view",
+                            "cpu-decay", "cpu-shake17", "cpu-shake-move", "cpu-path-weighted", "-view", "view",
                             "view-k25", "view-k33", "view-k49", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite",
                             "gsmsdr-cpu", "sharp-degraded-poses", "sharp"}  # fmt: skip
 
@@ -240,8 +240,8 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert repr(model("cpu-shake")) == repr(model("gsmsdr-cpu"))
     assert options["cpu-shake17"].shake_samples == 17 > options["gsmsdr-cpu"].shake_samples
     assert options["cpu-shake-move"].shake_translation and not options["gsmsdr-cpu"].shake_translation
-    assert options["gsmsdr-cpu"].deconvolved_loss_on_shake
-    assert not options["cpu-path-unweighted"].deconvolved_loss_on_shake
+    assert options["cpu-path-weighted"].deconvolved_loss_on_shake
+    assert not options["gsmsdr-cpu"].deconvolved_loss_on_shake
     assert not options["cpu-kernels"].camera_shake and not options["cpu-kernels"].render_margin
     assert model("cpu-kernels").blur_field == model("gsmsdr-cpu").blur_field
     # learning-rate decays: the suite's schedule scales them to its steps
@@ -307,6 +307,10 @@ def test_fields_added_at_their_neutral_value_keep_the_fingerprint() -> None:
     assert preset_fingerprint(METHODS["full-grid4k"]) == full
     # a field without a feature network (mode view) trains the same at any cap: no rerun of its records
     assert "feature_grid_cells" not in preset_fingerprint(METHODS["gsmsdr-cpu"])
+    # the path in the deconvolved loss: named only where it is on, and only models with shake paths read it
+    assert "deconvolved_loss_on_shake" not in preset_fingerprint(METHODS["gsmsdr-cpu"])
+    assert "deconvolved_loss_on_shake=True" in preset_fingerprint(METHODS["cpu-path-weighted"])
+    assert "deconvolved_loss_on_shake" not in full
 
 
 SHARED_TRAINING_SUITE = """\

@@ -410,9 +410,8 @@ def test_camera_shake_runs_on_views_that_may_be_shaken_and_learns():
     recs = records("motion", 1) + records("defocus", 1) + records("sharp", 1)
     recs.append({"split": "train", "degraded": True, "source": "estimated",
                  "effects": {"motion": dict(estimated), "defocus": dict(estimated)}})  # fmt: skip
-    model = build(
-        {"degradations": recs}, num_downscales=0, degradation_model=DegradationConfig(camera_shake=True, warmup=0)
-    )
+    config = DegradationConfig(camera_shake=True, warmup=0, deconvolved_loss_on_shake=True)
+    model = build({"degradations": recs}, num_downscales=0, degradation_model=config)
     shake = model.degradation.camera_shake
     assert shake is not None and model.get_param_groups()["blur_shake"] == [shake.coefficients]
     assert [model.degradation.plan(i, 1, step=10).shake for i in range(4)] == [True, False, False, True]
@@ -428,7 +427,7 @@ def test_camera_shake_runs_on_views_that_may_be_shaken_and_learns():
     aux, field_size = outputs["degradation"], model.degradation.plan(3, 1, step=10).blur_scale.kernel_size
     assert aux.kernel_mean.shape == (1, 3 * field_size, 3 * field_size)  # the path's window (2 K + 1) composed in
     assert float(aux.kernel_mean.sum()) == pytest.approx(1.0, abs=1e-4)
-    config = DegradationConfig(camera_shake=True, warmup=0, deconvolved_loss_on_shake=False)
+    config = DegradationConfig(camera_shake=True, warmup=0)  # the path left out of the loss's kernel
     alone = build({"degradations": recs}, num_downscales=0, degradation_model=config)
     alone.train()
     alone.optimizers = None

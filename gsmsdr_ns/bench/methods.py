@@ -282,12 +282,12 @@ METHODS: Dict[str, MethodSpec] = {
             shake_translation=True,
         ),  # fmt: skip
         _method(
-            "cpu-path-unweighted",
-            "gsmsdr-cpu, path left out of the deconvolved loss",
+            "cpu-path-weighted",
+            "gsmsdr-cpu, path in the deconvolved loss",
             "gsmsdr-cpu",
-            "gsmsdr-cpu whose deconvolved residual loss weighs by the per-view kernels alone, not the rotation path "
-            "composed with them (the preset before the path was composed in)",
-            deconvolved_loss_on_shake=False,
+            "gsmsdr-cpu whose deconvolved residual loss weighs by the rotation path's mean kernel composed with the "
+            "per-view kernels' (gsmsdr-cpu at 8604905)",
+            deconvolved_loss_on_shake=True,
         ),  # fmt: skip
         _method(
             "cpu-kernels",
