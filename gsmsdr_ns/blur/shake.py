@@ -26,6 +26,8 @@ from kornia.geometry.transform import warp_perspective
 from torch import Tensor, nn
 from torch.nn.functional import grid_sample
 
+from gsmsdr_ns.ops.splat import splat_bilinear
+
 __all__ = [
     "CameraShake",
     "apply_camera_shake",
@@ -125,18 +127,8 @@ def shake_mean_kernel(K: Tensor, rotvecs: Tensor, height: int, width: int, max_s
     xy = moved[:, :2] / moved[:, 2:3]
     offsets = xy - xy.mean(dim=0, keepdim=True)  # [T, 2, P], each probe's path centred
     size = max_size  # fixed, so no device read; zero taps beyond the path leave the spectrum's magnitude alone
-    pos = (offsets + size // 2).clamp(0.0, size - 1.0).permute(0, 2, 1).reshape(-1, 2)  # [T * P, 2] (x, y)
-    low = pos.floor().clamp(max=max(size - 2, 0))
-    frac = pos - low
-    low = low.long()
-    kernel = torch.zeros(size * size, dtype=torch.float64, device=K.device)
-    for dy in (0, 1):
-        for dx in (0, 1):
-            wx = frac[:, 0] if dx else 1.0 - frac[:, 0]
-            wy = frac[:, 1] if dy else 1.0 - frac[:, 1]
-            ix = (low[:, 0] + dx).clamp(max=size - 1)
-            iy = (low[:, 1] + dy).clamp(max=size - 1)
-            kernel.index_add_(0, iy * size + ix, wx * wy)
+    pos = (offsets + size // 2).permute(0, 2, 1).reshape(-1, 2)  # [T * P, 2] (x, y)
+    kernel = splat_bilinear(pos, torch.ones_like(pos[:, 0]), size)
     kernel = kernel / kernel.sum()
     return kernel.reshape(1, size, size).to(K.dtype)
 

@@ -24,6 +24,7 @@ from kornia.geometry.transform import warp_perspective
 from torch import Tensor, nn
 
 from ..ops.checks import check_image
+from ..ops.splat import splat_bilinear
 
 __all__ = [
     "disk_kernel",
@@ -112,13 +113,7 @@ def motion_kernel_from_trajectory(
             wts_list.append(torch.full((n,), 1.0 / n, dtype=traj.dtype))
         pts, wts = torch.cat(pts_list), torch.cat(wts_list)
     c = k // 2
-    x, y = pts[:, 0] + c, pts[:, 1] + c
-    x0, y0 = torch.floor(x), torch.floor(y)
-    fx, fy = x - x0, y - y0
-    kernel = torch.zeros(k * k, dtype=traj.dtype)
-    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
-        idx = ((y0 + dy) * k + (x0 + dx)).long()
-        kernel.index_add_(0, idx, w * wts)
+    kernel = splat_bilinear(pts + c, wts, k)  # k >= need keeps every point and its four cells inside
     kernel = kernel.reshape(k, k)
     return (kernel / kernel.sum()).to(dtype)
 

@@ -8,6 +8,7 @@ CPU, a C++/OpenMP kernel (``csrc/``, built on first use by :mod:`gsmsdr_ns._cpp_
 * :mod:`.disk_kernels`: a thin lens's per-pixel disk kernels (reference); :mod:`.disk_defocus`: the same, fused;
 * :mod:`.mixres`: the mixed-resolution down-up operator (``apply_mixres``, ``resolution_loss``);
 * :mod:`.deconvolved_loss`: the residual weighted by the inverse of an image's mean blur;
+* :mod:`.splat`: bilinear splatting of weighted points onto a grid (motion kernels from paths);
 * :mod:`.ssim`: splatfacto's training SSIM with its five filtered maps in two grouped convolutions.
 
 Imports only torch, kornia and the standard library (never ``blur``, ``degrade``, ``data`` or nerfstudio).
