@@ -183,7 +183,8 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
                             "full-margin", "full-shake", "full-true",
                             "full-per-pixel", "full-fallback", "full-fallback-coarse", "full-anchor", "full-lens-early",
                             "full-grid4k", "full-cells4", "cpu-poses", "cpu-shake", "cpu-kernels", "cpu-shake-decay",
-                            "cpu-decay", "cpu-shake17", "cpu-shake-move", "cpu-path-weighted", "-view", "view",
+                            "cpu-decay", "cpu-shake17", "cpu-shake-move", "cpu-path-weighted",
+                            "cpu-path-weighted-d05", "cpu-path-weighted-eps04", "-view", "view",
                             "view-k25", "view-k33", "view-k49", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite",
                             "gsmsdr-cpu", "sharp-degraded-poses", "sharp"}  # fmt: skip
 
@@ -242,6 +243,11 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert options["cpu-shake-move"].shake_translation and not options["gsmsdr-cpu"].shake_translation
     assert options["cpu-path-weighted"].deconvolved_loss_on_shake
     assert not options["gsmsdr-cpu"].deconvolved_loss_on_shake
+    assert options["cpu-path-weighted-eps04"].deconvolved_loss_eps == 0.04 > options["gsmsdr-cpu"].deconvolved_loss_eps
+    assert options["cpu-path-weighted-d05"] == options["cpu-path-weighted"]
+    # options of the Gaussian model itself: only the method that names one changes it
+    assert model("cpu-path-weighted-d05").degraded_densify_grad_scale == 0.5
+    assert model("cpu-path-weighted").degraded_densify_grad_scale == model("gsmsdr-cpu").degraded_densify_grad_scale
     assert not options["cpu-kernels"].camera_shake and not options["cpu-kernels"].render_margin
     assert model("cpu-kernels").blur_field == model("gsmsdr-cpu").blur_field
     # learning-rate decays: the suite's schedule scales them to its steps
@@ -310,7 +316,19 @@ def test_fields_added_at_their_neutral_value_keep_the_fingerprint() -> None:
     # the path in the deconvolved loss: named only where it is on, and only models with shake paths read it
     assert "deconvolved_loss_on_shake" not in preset_fingerprint(METHODS["gsmsdr-cpu"])
     assert "deconvolved_loss_on_shake=True" in preset_fingerprint(METHODS["cpu-path-weighted"])
+    # a model option a method replaces is in its fingerprint
+    assert "degraded_densify_grad_scale=0.5" in preset_fingerprint(METHODS["cpu-path-weighted-d05"])
+    assert "degraded_densify_grad_scale=1.0" in preset_fingerprint(METHODS["cpu-path-weighted"])
     assert "deconvolved_loss_on_shake" not in full
+
+
+def test_model_options_of_a_method_are_checked(tmp_path: Path) -> None:
+    """A method replacing a Gaussian-model option that does not exist fails naming it, before any training."""
+    from gsmsdr_ns.bench.methods import MethodSpec
+
+    spec = MethodSpec("bad", "bad", "gsmsdr-cpu", model_overrides=(("densify_scale", 0.5),))
+    with pytest.raises(ValueError, match="densify_scale"):
+        spec.make_config(tmp_path, tmp_path / "out")
 
 
 SHARED_TRAINING_SUITE = """\

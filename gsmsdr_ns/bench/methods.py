@@ -98,6 +98,9 @@ class MethodSpec:
     lr_final: Tuple[Tuple[str, float], ...] = ()
     """(optimizer group, final rate): the group's rate decays exponentially from the preset's to this one over the
     run (the suite's schedule scales the decay to its steps)."""
+    model_overrides: Tuple[Tuple[str, Any], ...] = ()
+    """Fields replaced on the preset's ``GSMSDRModelConfig`` itself (the Gaussian model's options, such as
+    ``degraded_densify_grad_scale``); an option it does not have raises ValueError."""
 
     def make_config(self, data: Path, output_dir: Path):
         """The TrainerConfig of this method on ``data`` (schedules not yet shortened)."""
@@ -111,6 +114,8 @@ class MethodSpec:
             set_pose_refinement(model, self.pose_refinement)
         for group, final in self.lr_final:
             set_lr_decay(config, group, final)
+        if self.model_overrides:
+            config.pipeline.model = replace_model_options(config.pipeline.model, dict(self.model_overrides))
         return config
 
     @property
@@ -141,6 +146,16 @@ def apply_overrides(blur_field, degradation, overrides: Dict[str, Any]):
     on_field = {k: v for k, v in overrides.items() if k in field_names}
     on_degradation = {k: v for k, v in overrides.items() if k in degradation_names}
     return dataclasses.replace(blur_field, **on_field), dataclasses.replace(degradation, **on_degradation)
+
+
+def replace_model_options(model, options: Dict[str, Any]):
+    """``model`` (a GSMSDRModelConfig) with each of ``options`` replaced; an option it does not have raises
+    ValueError naming it."""
+    names = {f.name for f in dataclasses.fields(model)}
+    unknown = sorted(set(options) - names)
+    if unknown:
+        raise ValueError(f"not an option of GSMSDRModelConfig: {', '.join(unknown)}")
+    return dataclasses.replace(model, **options)
 
 
 def _method(name: str, label: str, base: str, description: str, sharp_data: bool = False, **options) -> MethodSpec:
@@ -287,6 +302,25 @@ METHODS: Dict[str, MethodSpec] = {
             "gsmsdr-cpu",
             "gsmsdr-cpu whose deconvolved residual loss weighs by the rotation path's mean kernel composed with the "
             "per-view kernels' (gsmsdr-cpu at 8604905)",
+            deconvolved_loss_on_shake=True,
+        ),  # fmt: skip
+        MethodSpec(
+            "cpu-path-weighted-d05",
+            "gsmsdr-cpu, path in the deconvolved loss, degraded densification x0.5",
+            "gsmsdr-cpu",
+            (("deconvolved_loss_on_shake", True),),
+            False,
+            "cpu-path-weighted whose degraded views' densification gradient is halved (the loss's stronger "
+            "gradients otherwise split more Gaussians)",
+            model_overrides=(("degraded_densify_grad_scale", 0.5),),
+        ),  # fmt: skip
+        _method(
+            "cpu-path-weighted-eps04",
+            "gsmsdr-cpu, path in the deconvolved loss, eps 0.04",
+            "gsmsdr-cpu",
+            "cpu-path-weighted with the deconvolved loss's Wiener regulariser 0.04 instead of 0.01 (its weight at "
+            "most 5x instead of 10x where the blur removes a frequency)",
+            deconvolved_loss_eps=0.04,
             deconvolved_loss_on_shake=True,
         ),  # fmt: skip
         _method(
