@@ -184,7 +184,7 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
                             "full-per-pixel", "full-fallback", "full-fallback-coarse", "full-anchor", "full-lens-early",
                             "full-grid4k", "full-cells4", "cpu-poses", "cpu-shake", "cpu-kernels", "cpu-shake-decay",
                             "cpu-decay", "cpu-shake17", "cpu-shake-move", "cpu-path-weighted",
-                            "cpu-path-weighted-d05", "cpu-path-weighted-eps04", "-view", "view",
+                            "cpu-path-weighted-d05", "cpu-path-weighted-eps04", "cpu-paper-loss", "-view", "view",
                             "view-k25", "view-k33", "view-k49", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite",
                             "gsmsdr-cpu", "sharp-degraded-poses", "sharp"}  # fmt: skip
 
@@ -245,6 +245,7 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert not options["gsmsdr-cpu"].deconvolved_loss_on_shake
     assert options["cpu-path-weighted-eps04"].deconvolved_loss_eps == 0.04 > options["gsmsdr-cpu"].deconvolved_loss_eps
     assert options["cpu-path-weighted-d05"] == options["cpu-path-weighted"]
+    assert options["cpu-paper-loss"].deconvolved_loss_weight == 0 < options["gsmsdr-cpu"].deconvolved_loss_weight
     # options of the Gaussian model itself: only the method that names one changes it
     assert model("cpu-path-weighted-d05").degraded_densify_grad_scale == 0.5
     assert model("cpu-path-weighted").degraded_densify_grad_scale == model("gsmsdr-cpu").degraded_densify_grad_scale

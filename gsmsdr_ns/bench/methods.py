@@ -324,6 +324,13 @@ METHODS: Dict[str, MethodSpec] = {
             deconvolved_loss_on_shake=True,
         ),  # fmt: skip
         _method(
+            "cpu-paper-loss",
+            "gsmsdr-cpu, the paper's loss alone",
+            "gsmsdr-cpu",
+            "gsmsdr-cpu without the deconvolved residual loss (deconvolved_loss_weight 0)",
+            deconvolved_loss_weight=0.0,
+        ),  # fmt: skip
+        _method(
             "cpu-kernels",
             "gsmsdr-cpu, per-view kernels alone",
             "gsmsdr-cpu",
