@@ -88,9 +88,9 @@ class TimeEstimate:
     """
 
     schedule: StepSchedule
-    pixel_exponent: float = 0.65
-    """Step cost ~ pixels ** this across resolution stages (the real-size suite's 3000-step traces at 458x333 and
-    600x400: 0.3-1.1 per stage change, median 0.7; docs/results/real-size/eta.md)."""
+    pixel_exponent: float = 0.70
+    """Step cost ~ pixels ** this across resolution stages (the real-size suite's 3000- and 6000-step traces at
+    458x333 and 600x400: 0.5-1.0 per stage change, median 0.73; docs/results/real-size/eta.md)."""
     gaussian_exponent: float = 0.2
     """Step cost ~ Gaussians ** this at one resolution (0.19-0.29 within a resolution stage while densification grew
     the Gaussians 2-6x: gsmsdr-cpu on fern at 458x333, plain on the generated 600x400 scene)."""
