@@ -24,6 +24,7 @@ def splat_bilinear(points: Tensor, weights: Tensor, size: int) -> Tensor:
     low = pos.floor().clamp(max=max(size - 2, 0))  # a point on the last row or column keeps a cell after it
     frac = pos - low
     low = low.long()
+    weights = weights.to(points.dtype)
     grid = points.new_zeros(size * size)
     for dy in (0, 1):
         for dx in (0, 1):
@@ -31,5 +32,5 @@ def splat_bilinear(points: Tensor, weights: Tensor, size: int) -> Tensor:
             wy = frac[:, 1] if dy else 1.0 - frac[:, 1]
             ix = (low[:, 0] + dx).clamp(max=size - 1)
             iy = (low[:, 1] + dy).clamp(max=size - 1)
-            grid.index_add_(0, iy * size + ix, wx * wy * weights.to(points.dtype))
+            grid.index_add_(0, iy * size + ix, wx * wy * weights)
     return grid
