@@ -158,8 +158,18 @@ def replace_model_options(model, options: Dict[str, Any]):
     return dataclasses.replace(model, **options)
 
 
-def _method(name: str, label: str, base: str, description: str, sharp_data: bool = False, **options) -> MethodSpec:
-    return MethodSpec(name, label, base, tuple(sorted(options.items())), sharp_data, description)
+def _method(
+    name: str,
+    label: str,
+    base: str,
+    description: str,
+    sharp_data: bool = False,
+    model_overrides: Tuple[Tuple[str, Any], ...] = (),
+    **options,
+) -> MethodSpec:
+    return MethodSpec(
+        name, label, base, tuple(sorted(options.items())), sharp_data, description, model_overrides=model_overrides
+    )
 
 
 def _view_kernels_method(sizes: Tuple[int, int, int]) -> MethodSpec:
@@ -304,15 +314,14 @@ METHODS: Dict[str, MethodSpec] = {
             "per-view kernels' (gsmsdr-cpu at 8604905)",
             deconvolved_loss_on_shake=True,
         ),  # fmt: skip
-        MethodSpec(
+        _method(
             "cpu-path-weighted-d05",
             "gsmsdr-cpu, path in the deconvolved loss, degraded densification x0.5",
             "gsmsdr-cpu",
-            (("deconvolved_loss_on_shake", True),),
-            False,
             "cpu-path-weighted whose degraded views' densification gradient is halved (the loss's stronger "
             "gradients otherwise split more Gaussians)",
             model_overrides=(("degraded_densify_grad_scale", 0.5),),
+            deconvolved_loss_on_shake=True,
         ),  # fmt: skip
         _method(
             "cpu-path-weighted-eps04",
