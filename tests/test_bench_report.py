@@ -84,7 +84,8 @@ def test_records_name_the_commit_the_process_imported(monkeypatch):
 def test_against_wall_time_compares_with_plain_after_the_same_training_time(tmp_path: Path) -> None:
     """plain reaches 20 dB at 10 s and 22 at 20 s; full trains 15 s to 23 dB: plain after 15 s is 21 dB (+2.00). A
     method training longer than plain is compared with plain's last value, marked *. The last quarter of the steps
-    (15 -> 20) gained 1.0 dB."""
+    (15 -> 20) gained 1.0 dB. view's first half of the steps took a quarter of its time: its last quarter of the steps
+    gained 1.25 dB, of the time (30 s -> 40 s) 0.83 dB."""
     path = tmp_path / "time.yaml"
     path.write_text(TINY_SUITE.replace("methods: [plain, full]", "methods: [plain, full, view]"), encoding="utf8")
     suite = load_suite(path)
@@ -96,11 +97,11 @@ def test_against_wall_time_compares_with_plain_after_the_same_training_time(tmp_
 
     records = [record("plain", 20.0, [(0, 0.0, 10.0), (10, 10.0, 20.0), (20, 20.0, 22.0)]),
                record("full", 15.0, [(0, 0.0, 10.0), (10, 7.5, 21.0), (20, 15.0, 23.0)]),
-               record("view", 40.0, [(0, 0.0, 10.0), (10, 20.0, 21.0), (20, 40.0, 23.5)])]  # fmt: skip
+               record("view", 40.0, [(0, 0.0, 10.0), (10, 10.0, 21.0), (20, 40.0, 23.5)])]  # fmt: skip
     text = format_markdown(suite, records)
     rows = text[text.index("## Against wall time") :].splitlines()
     full = [c.strip() for c in next(r for r in rows if "| GS-MSDR (full) |" in r).strip("|").split("|")]
-    assert full[2:] == ["0.2", "0.4", "23.00", "21.00", "+2.00", "+1.00"]
+    assert full[2:] == ["0.2", "0.4", "23.00", "21.00", "+2.00", "+1.00", "+1.00"]
     view = [c.strip() for c in next(r for r in rows if "(mode view) |" in r).strip("|").split("|")]
-    assert view[5:7] == ["22.00 *", "+1.50"]
+    assert view[5:] == ["22.00 *", "+1.50", "+1.25", "+0.83"]
     assert "## Against wall time" not in format_markdown(suite, [_record("plain", 0)])  # no curves: no table
