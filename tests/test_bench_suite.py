@@ -375,6 +375,55 @@ def test_runs_with_the_same_training_train_once(tmp_path: Path) -> None:
     assert again.trained == [] and again.copied == [] and len(again.reused) == 4
 
 
+DIAGNOSTICS_SUITE = """\
+name: diagnostics
+scene_defaults: {width: 64, height: 48, num_views: 10, hold: 5, num_points: 400, seed: 0}
+scenes: [motion]
+methods: [full]
+steps: [6]
+schedule: {num_downscales: 0}
+threads: 1
+lpips: false
+final_renders: true
+train_fit: true
+"""
+
+
+def test_final_renders_and_train_fit_are_written_without_changing_the_run(tmp_path: Path) -> None:
+    """``final_renders`` writes each test view's render and ground truth (their PSNR is the view's recorded PSNR up
+    to 8-bit rounding); ``train_fit`` records the training-view fit and shows it in results.md; neither changes the
+    run's fingerprint. Real training, tiny scene."""
+    import numpy as np
+
+    from gsmsdr_ns.io.images import read_image
+
+    suite = load_suite(write_suite(tmp_path, DIAGNOSTICS_SUITE))
+    plain = load_suite(write_suite(tmp_path, DIAGNOSTICS_SUITE.replace("final_renders: true\ntrain_fit: true\n", ""),
+                                   "plain.yaml"))  # fmt: skip
+    key = RunKey("motion", "full", 6, 0)
+    assert suite.final_renders and suite.train_fit and not plain.final_renders and not plain.train_fit
+    assert fingerprint(suite, key) == fingerprint(plain, key)
+
+    out = tmp_path / "out"
+    outcome = run_suite(suite, out, progress=False, plots=False)
+    assert not outcome.failed
+    record = finished_record(suite, out, key)
+    assert record is not None and np.isfinite(record["train_psnr"]) and record["train_psnr"] > 5.0
+    views = record["psnr_views"]
+    assert len(views) == record["num_test_views"] == 2
+    assert abs(sum(views) / len(views) - record["psnr"]) < 1e-3
+    folder = out / "renders" / key.id
+    assert sorted(p.name for p in folder.iterdir()) == ["000_gt.png", "000_render.png", "001_gt.png", "001_render.png"]
+    for index, expected in enumerate(views):
+        render, gt = (
+            read_image(folder / f"{index:03d}_{kind}.png").astype(np.float64) / 255.0 for kind in ("render", "gt")
+        )
+        assert render.shape == gt.shape == (48, 64, 3)
+        assert abs(-10.0 * np.log10(np.mean((render - gt) ** 2)) - expected) < 0.2
+    text = (out / "results.md").read_text(encoding="utf8")
+    assert "train-view fit PSNR" in text and f"{record['train_psnr']:.2f}" in text
+
+
 def test_a_preset_that_degrades_nothing_shares_its_sharp_photos_scene() -> None:
     """On the real-photo suite, the sharp fern's "sharp photos with the degraded photos' poses" bound, its plain
     Gaussians and every scene's sharp upper bound read the same folder (named without building it), so they train

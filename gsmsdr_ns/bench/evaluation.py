@@ -23,7 +23,8 @@ SSIM so its tables stay comparable.)
 
 from __future__ import annotations
 
-from typing import Any, Dict, List, Optional
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 
 def make_lpips(device) -> Optional[Any]:
@@ -37,10 +38,12 @@ def make_lpips(device) -> Optional[Any]:
     return LearnedPerceptualImagePatchSimilarity(normalize=True).to(device)
 
 
-def evaluate_test_views(run, lpips=None, align=None) -> Dict[str, float]:
+def evaluate_test_views(run, lpips=None, align=None, renders_to: Optional[Path] = None) -> Dict[str, Any]:
     """Mean PSNR / SSIM / LPIPS (see the module docstring) of the test views of ``run`` (an
-    :class:`gsmsdr_ns.bench.training.InProcessRun`), and ``num_views``; with ``align`` (a
-    :class:`~gsmsdr_ns.plugin.pose_alignment.PoseAlignmentConfig`) also the metrics at the aligned test poses.
+    :class:`gsmsdr_ns.bench.training.InProcessRun`), ``num_views`` and each view's PSNR (``psnr_views``); with
+    ``align`` (a :class:`~gsmsdr_ns.plugin.pose_alignment.PoseAlignmentConfig`) also the metrics at the aligned test
+    poses. With ``renders_to``, that folder (replaced as a whole) receives each view's render and ground truth,
+    ``<index>_render.png`` and ``<index>_gt.png`` (8 bit, in the eval dataloader's order).
 
     Renders with the random state restored, in eval mode, then back to train mode: training continues exactly as
     without the evaluation.
@@ -55,6 +58,7 @@ def evaluate_test_views(run, lpips=None, align=None) -> Dict[str, float]:
     given: List[Dict[str, float]] = []
     aligned: List[Dict[str, float]] = []
     corrections: List[float] = []
+    images: List[Any] = []
     pipeline.eval()
     try:
         with torch.random.fork_rng(devices=devices):
@@ -64,6 +68,8 @@ def evaluate_test_views(run, lpips=None, align=None) -> Dict[str, float]:
                 gt = model.composite_with_background(model.get_gt_img(batch["image"]), outputs["background"])
                 gt = gt[..., :3].clamp(0.0, 1.0)
                 given.append(_image_metrics(outputs["rgb"], gt, lpips, model.device))
+                if renders_to is not None:
+                    images.append((_to_uint8(outputs["rgb"]), _to_uint8(gt)))
                 if align is None:
                     continue
                 camera = camera.to(model.device)
@@ -80,10 +86,30 @@ def evaluate_test_views(run, lpips=None, align=None) -> Dict[str, float]:
     names = ("psnr", "ssim", "lpips")
     out = {name: float(np.mean([m[name] for m in given])) for name in names}
     out["num_views"] = len(given)
+    out["psnr_views"] = [round(m["psnr"], 4) for m in given]
+    if renders_to is not None:
+        _write_renders(Path(renders_to), images)
     if align is not None:
         out.update({f"{name}_aligned": float(np.mean([m[name] for m in aligned])) for name in names})
         out["pose_correction_deg"] = float(np.mean(corrections))
     return out
+
+
+def _to_uint8(image) -> Any:
+    """[H, W, >=3] float image in [0, 1] -> [H, W, 3] uint8 numpy array."""
+    return (image[..., :3].detach().clamp(0.0, 1.0) * 255.0).round().byte().cpu().numpy()
+
+
+def _write_renders(folder: Path, images: Sequence[Tuple[Any, Any]]) -> None:
+    """``folder`` replaced by one holding ``<index>_render.png`` / ``<index>_gt.png`` per (render, gt) pair."""
+    from gsmsdr_ns.io.atomic import atomic_dir
+    from gsmsdr_ns.io.images import write_image
+
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_dir(folder) as tmp:
+        for index, (render, gt) in enumerate(images):
+            write_image(tmp / f"{index:03d}_render.png", render)
+            write_image(tmp / f"{index:03d}_gt.png", gt)
 
 
 def _image_metrics(rgb, gt, lpips, device) -> Dict[str, float]:

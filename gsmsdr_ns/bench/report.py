@@ -22,7 +22,7 @@ from gsmsdr_ns.resources import config_root
 CSV_FIELDS = ("suite", "scene", "method", "steps", "seed", "psnr", "ssim", "lpips", "train_seconds", "step_ms",
               *(f"t_{c}" for c in CATEGORIES), "peak_rss_mb", "peak_cuda_mb", "num_gaussians", "eval_seconds",
               "setup_seconds", "device", "torch_threads", "psnr_aligned", "ssim_aligned",
-              "lpips_aligned", "pose_correction_deg")  # fmt: skip
+              "lpips_aligned", "pose_correction_deg", "train_psnr")  # fmt: skip
 
 
 def _num(value: Any, digits: int) -> str:
@@ -46,7 +46,8 @@ def write_csv(records: Sequence[Mapping[str, Any]], path: Path) -> None:
                          _num(r["peak_cuda_mb"], 1), r["num_gaussians"], _num(r["eval_seconds"], 2),
                          _num(r["setup_seconds"], 2), m.get("device", ""), m.get("torch_threads", ""),
                          _num(r.get("psnr_aligned"), 4), _num(r.get("ssim_aligned"), 5),
-                         _num(r.get("lpips_aligned"), 5), _num(r.get("pose_correction_deg"), 3)])  # fmt: skip
+                         _num(r.get("lpips_aligned"), 5), _num(r.get("pose_correction_deg"), 3),
+                         _num(r.get("train_psnr"), 4)])  # fmt: skip
     write_text_atomic(path, buffer.getvalue())
 
 
@@ -66,7 +67,7 @@ def aggregate(records: Sequence[Mapping[str, Any]]) -> Dict[Tuple[int, str, str]
         row: Dict[str, Any] = {"seeds": len(rs)}
         for name in ("psnr", "ssim", "lpips", "train_seconds", "step_ms", "peak_rss_mb", "peak_cuda_mb",
                      "num_gaussians", "eval_seconds", "psnr_aligned", "ssim_aligned", "lpips_aligned",
-                     "pose_correction_deg"):  # fmt: skip
+                     "pose_correction_deg", "train_psnr"):  # fmt: skip
             row[name] = _mean([r.get(name, float("nan")) for r in rs])
         psnrs = [float(r["psnr"]) for r in rs if math.isfinite(float(r["psnr"]))]
         row["psnr_min"], row["psnr_max"] = (min(psnrs), max(psnrs)) if psnrs else (float("nan"), float("nan"))
@@ -154,6 +155,10 @@ def _header_lines(
                      "test camera's pose optimised on the photometric loss against its sharp photo, "
                      "`gsmsdr_ns/plugin/pose_alignment.py`; a pose is kept when alignment does not lower the loss); "
                      "pose corr.: mean rotation of the corrections in degrees")  # fmt: skip
+    if suite.train_fit:
+        lines.append("- train-view fit PSNR: at the end of training, each training view's render, degraded as the "
+                     "model simulates it, against the degraded training photo (`train_view_psnr` in "
+                     "`gsmsdr_ns/bench/evaluation.py`)")  # fmt: skip
     lines.append("- train s: training wall time without evaluation and set-up; ms/step = train s / steps; peak mem: "
                  "peak resident memory of the process during the run (includes the Python/torch baseline)"
                  + ("; peak CUDA: torch.cuda.max_memory_allocated" if machine.get("device") == "cuda" else "")
@@ -180,6 +185,8 @@ def _per_scene_tables(suite: Suite, agg: _Aggregate, steps: int) -> List[str]:
         show_aligned = any(math.isfinite(r["psnr_aligned"]) for _, r in rows)
         head = ["method", "PSNR", "SSIM", "LPIPS"]
         head += ["PSNR aligned", "SSIM aligned", "pose corr. °"] if show_aligned else []
+        show_fit = any(math.isfinite(r["train_psnr"]) for _, r in rows)
+        head += ["train-view fit PSNR"] if show_fit else []
         head += ["train s", "ms/step", "peak mem MB"]
         head += ["peak CUDA MB"] if show_cuda else []
         head += ["Gaussians"] + (["seeds", "PSNR lowest - highest seed"] if multi_seed else [])
@@ -189,6 +196,7 @@ def _per_scene_tables(suite: Suite, agg: _Aggregate, steps: int) -> List[str]:
             cells = [METHODS[m].label, _f(r["psnr"]), _f(r["ssim"], 4), _f(r["lpips"], 4)]
             if show_aligned:
                 cells += [_f(r["psnr_aligned"]), _f(r["ssim_aligned"], 4), _f(r["pose_correction_deg"], 2)]
+            cells += [_f(r["train_psnr"])] if show_fit else []
             cells += [_f(r["train_seconds"], 0), _f(r["step_ms"], 0), _f(r["peak_rss_mb"], 0)]
             cells += [_f(r["peak_cuda_mb"], 0)] if show_cuda else []
             cells += [_f(r["num_gaussians"], 0)]

@@ -15,6 +15,7 @@ In the output folder:
   was interrupted starts over). A run on estimated records whose fingerprint changed only because the estimate did
   (its version, config or fitted ensembles) keeps its record when the records it trains on are the same as they
   were (:func:`gsmsdr_ns.bench.ledger.rekey_unchanged_estimates`);
+* ``renders/<run id>/``: with the suite's ``final_renders``, each test view's final render and ground truth;
 * ``results.csv``, ``results.md`` and the plots (:mod:`gsmsdr_ns.bench.report`), regenerated after every run;
 * ``scenes/``: the generated scenes (made once, reused).
 """
@@ -52,9 +53,11 @@ def train_and_record(
     on_eval: Optional[Callable[[Dict[str, Any]], None]] = None,
     log: Optional[Callable[[str], None]] = None,
 ) -> Dict[str, Any]:
-    """Train one run of ``suite`` and return its record (not written). ``on_step(n)`` after every n steps."""
+    """Train one run of ``suite`` and return its record (not written). ``on_step(n)`` after every n steps.
+    ``work_dir`` is ``<out>/runs/nerfstudio`` (the suite's renders go to ``<out>/renders``)."""
     import torch
 
+    from gsmsdr_ns.bench.evaluation import train_view_psnr
     from gsmsdr_ns.bench.timing import PeakMemory, TimingRecorder
     from gsmsdr_ns.bench.training import InProcessRun
     from gsmsdr_ns.plugin.pose_alignment import PoseAlignmentConfig
@@ -94,7 +97,11 @@ def train_and_record(
                 if on_step is not None:
                     on_step(1)
             t0 = time.perf_counter()
-            metrics = evaluate_test_views(run, lpips, align=alignment if target == eval_steps[-1] else None)
+            last = target == eval_steps[-1]
+            renders = Path(work_dir).parent.parent / "renders" / key.id if last and suite.final_renders else None
+            metrics = evaluate_test_views(run, lpips, align=alignment if last else None, renders_to=renders)
+            if last and suite.train_fit:
+                metrics["train_psnr"] = train_view_psnr(run)
             eval_seconds += time.perf_counter() - t0
             point = {"step": run.step, "seconds": recorder.wall, **metrics,
                      "num_gaussians": int(run.model.num_points), "breakdown": recorder.totals()}  # fmt: skip
@@ -123,6 +130,7 @@ def train_and_record(
             "num_gaussians": final["num_gaussians"],
             "num_test_views": final["num_views"],
             **{k: final[k] for k in ALIGNED_KEYS if k in final},
+            **{k: final[k] for k in ("psnr_views", "train_psnr") if k in final},
             "peak_rss_mb": memory.peak_rss_mb(),
             "peak_rss_span": memory.span_reset,
             "peak_cuda_mb": memory.peak_cuda_mb(),

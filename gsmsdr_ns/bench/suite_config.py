@@ -197,6 +197,12 @@ class Suite:
     align_poses: bool = False
     """At the final evaluation, also report the metrics after test-pose alignment (real captures, whose test poses
     come from the degraded photos' structure-from-motion)."""
+    final_renders: bool = False
+    """Write each run's final test renders and their ground truth to ``<out>/renders/<run id>/`` (PNG)."""
+    train_fit: bool = False
+    """At the end of each run, also record how well it fits its own training images (``train_psnr``: the training
+    render, degraded as the model simulates, against the degraded photo): a low fit is a degradation model that
+    cannot explain the photos, a high fit with a low test PSNR one that explains them the wrong way."""
     description: str = ""
     """Free text for the results header."""
     ray: RaySettings = field(default_factory=RaySettings)
@@ -238,7 +244,8 @@ def schedule_settings(schedule: TrainingSchedule) -> Dict[str, Any]:
 
 
 _SUITE_KEYS = {"name", "description", "scenes", "scene_defaults", "methods", "steps", "seeds", "eval_every",
-               "schedule", "threads", "lpips", "align_poses", "scene_root", "ray"}  # fmt: skip
+               "schedule", "threads", "lpips", "align_poses", "final_renders", "train_fit", "scene_root",
+               "ray"}  # fmt: skip
 _SCENE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
 
 
@@ -444,6 +451,8 @@ def load_suite(path: str | Path) -> Suite:
         raise _fail(source, "threads", f"must be an integer >= 0, got {threads!r}")
     lpips = _bool(values, "lpips", True, source)
     align_poses = _bool(values, "align_poses", False, source)
+    final_renders = _bool(values, "final_renders", False, source)
+    train_fit = _bool(values, "train_fit", False, source)
     schedule = _check_schedule(values.get("schedule") or {}, source)
 
     scene_root = values.get("scene_root")
@@ -460,6 +469,8 @@ def load_suite(path: str | Path) -> Suite:
         threads=threads,
         lpips=lpips,
         align_poses=align_poses,
+        final_renders=final_renders,
+        train_fit=train_fit,
         ray=_parse_ray(values.get("ray"), source),
         description=str(values.get("description", "")).strip(),
         scene_root=None if scene_root is None else Path(os.path.expanduser(scene_root)),
