@@ -135,26 +135,29 @@ class MethodSpec:
         return dict(GAKA=mods.gaka, SAFM=mods.safm, MCA=mods.mca, RGBD=mods.rgbd, HPKO=mods.hpko)
 
 
+def _check_options(options: Dict[str, Any], *configs) -> None:
+    """Raise ValueError naming every key of ``options`` that is a field of none of the dataclasses ``configs``."""
+    names = {f.name for config in configs for f in dataclasses.fields(config)}
+    unknown = sorted(set(options) - names)
+    if unknown:
+        kinds = " or ".join(type(config).__name__ for config in configs)
+        raise ValueError(f"not an option of {kinds}: {', '.join(unknown)}")
+
+
 def apply_overrides(blur_field, degradation, overrides: Dict[str, Any]):
     """(blur_field, degradation) with each of ``overrides`` replaced where it is defined: a ``BlurFieldConfig`` field
     on ``blur_field``, a ``DegradationConfig`` field on ``degradation``. An option of neither raises ValueError."""
+    _check_options(overrides, blur_field, degradation)
     field_names = {f.name for f in dataclasses.fields(blur_field)}
-    degradation_names = {f.name for f in dataclasses.fields(degradation)}
-    unknown = sorted(set(overrides) - field_names - degradation_names)
-    if unknown:
-        raise ValueError(f"not an option of BlurFieldConfig or DegradationConfig: {', '.join(unknown)}")
     on_field = {k: v for k, v in overrides.items() if k in field_names}
-    on_degradation = {k: v for k, v in overrides.items() if k in degradation_names}
+    on_degradation = {k: v for k, v in overrides.items() if k not in field_names}
     return dataclasses.replace(blur_field, **on_field), dataclasses.replace(degradation, **on_degradation)
 
 
 def replace_model_options(model, options: Dict[str, Any]):
     """``model`` (a GSMSDRModelConfig) with each of ``options`` replaced; an option it does not have raises
     ValueError naming it."""
-    names = {f.name for f in dataclasses.fields(model)}
-    unknown = sorted(set(options) - names)
-    if unknown:
-        raise ValueError(f"not an option of GSMSDRModelConfig: {', '.join(unknown)}")
+    _check_options(options, model)
     return dataclasses.replace(model, **options)
 
 
