@@ -1,0 +1,192 @@
+"""How well each camera-shake model can explain a generated scene's shaken photos (prints a table). Run from the
+repository root::
+
+    python -m tools.shake.shake_fit --data shaken-scene --sharp its-sharp-twin [--views 8]
+
+``--data`` is a generated scene degraded by ``motion`` (``gsmsdr-synth --variant motion-strong``: its
+``degradation.json`` keeps each training view's true exposure path, ``depth/`` each view's depth); ``--sharp`` the
+same scene rendered sharp (``gsmsdr-synth --variant sharp`` with the same scene settings). No training: per shaken
+training view, the sharp twin is blurred by each model, fitted to the photo where the model has free parameters,
+and compared with the photo (PSNR in sRGB over the view minus a margin the shake reaches beyond the border):
+
+* ``none``: the sharp image itself;
+* ``kernel``: the best single kernel of ``--kernel-size`` px (least squares in linear light; mode ``view``);
+* ``rotation``: the true path's rotations alone, translations dropped;
+* ``path``: the best rotation path (``--path-samples`` samples, fitted from the true rotations; what
+  ``camera_shake`` learns, without its cubic form), then ``path + kernel`` with the best kernel after it (the
+  ``gsmsdr-cpu`` model's ceiling);
+* ``6-DoF``: the true rotations and translations, each pixel moved by the view's depth
+  (:func:`gsmsdr_ns.blur.shake.shake_sample_grid`, the ``shake_translation`` model with the true path).
+
+What the best fit of a model leaves is what training with that model cannot explain however well it learns.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List
+
+import numpy as np
+import torch
+import tyro
+from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
+from kornia.geometry.transform import warp_perspective
+from torch import Tensor
+from torch.nn.functional import grid_sample
+
+from gsmsdr_ns.blur.shake import rotation_homographies, shake_sample_grid
+from gsmsdr_ns.io.images import read_image
+
+MODELS = ("none", "kernel", "rotation", "path", "path + kernel", "6-DoF")
+"""Columns of the table, in order."""
+
+
+def psnr(a: Tensor, b: Tensor, margin: int) -> float:
+    """PSNR of ``a`` against ``b`` ([1, 3, H, W] sRGB in [0, 1]) inside ``margin`` px of the border."""
+    d = (a - b)[..., margin : a.shape[-2] - margin, margin : a.shape[-1] - margin]
+    return float(-10.0 * torch.log10((d**2).mean().clamp_min(1e-12)))
+
+
+def rotation_blur(image: Tensor, K: Tensor, rotvecs: Tensor) -> Tensor:
+    """Mean of ``image`` [1, C, H, W] warped by the camera rotations ``rotvecs`` [T, 3] (this package's rotation
+    path convention: the view reads the sharp image at ``K R^T K^-1 x``)."""
+    H = rotation_homographies(K, rotvecs)
+    stack = image.expand(H.shape[0], -1, -1, -1)
+    warped = warp_perspective(stack, H, image.shape[-2:], mode="bilinear", padding_mode="border", align_corners=True)
+    return warped.mean(0, keepdim=True)
+
+
+def depth_blur(image: Tensor, K: Tensor, rotvecs: Tensor, translations: Tensor, depth: Tensor) -> Tensor:
+    """Mean of ``image`` [1, C, H, W] read along a 6-DoF path, each pixel moved by its ``depth`` [H, W]."""
+    grid = shake_sample_grid(K, rotvecs, translations, depth)
+    stack = image.expand(grid.shape[0], -1, -1, -1)
+    return grid_sample(stack, grid.to(image.dtype), mode="bilinear", padding_mode="border", align_corners=True).mean(
+        0, keepdim=True
+    )
+
+
+def fit_kernel(source: Tensor, target: Tensor, size: int, margin: int, iters: int = 100) -> Tensor:
+    """``source`` [1, C, H, W] convolved with the ``size`` x ``size`` kernel (shared by the channels) that best
+    matches ``target`` in least squares inside ``margin`` px of the border."""
+    H, W = source.shape[-2:]
+    shape = (H + size, W + size)
+    spectrum = torch.fft.rfft2(source, s=shape)
+    kernel = torch.zeros(size, size, dtype=source.dtype)
+    kernel[size // 2, size // 2] = 1.0
+    kernel.requires_grad_(True)
+    c = size // 2
+
+    def convolve(k: Tensor) -> Tensor:
+        return torch.fft.irfft2(spectrum * torch.fft.rfft2(k, s=shape), s=shape)[..., c : c + H, c : c + W]
+
+    def loss() -> Tensor:
+        d = convolve(kernel) - target
+        return (d[..., margin : H - margin, margin : W - margin] ** 2).mean()
+
+    _minimise([kernel], loss, iters)
+    with torch.no_grad():
+        return convolve(kernel)
+
+
+def fit_rotation_path(source: Tensor, target: Tensor, K: Tensor, start: Tensor, margin: int, iters: int = 40) -> Tensor:
+    """Rotation vectors [T, 3] (from ``start``) whose :func:`rotation_blur` of ``source`` best matches ``target``."""
+    rotvecs = start.clone().requires_grad_(True)
+    H, W = source.shape[-2:]
+
+    def loss() -> Tensor:
+        d = rotation_blur(source, K, rotvecs) - target
+        return (d[..., margin : H - margin, margin : W - margin] ** 2).mean()
+
+    _minimise([rotvecs], loss, iters)
+    return rotvecs.detach()
+
+
+def _minimise(params: List[Tensor], loss, iters: int) -> None:
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iters, history_size=20, line_search_fn="strong_wolfe")
+
+    def closure() -> Tensor:
+        opt.zero_grad()
+        value = loss()
+        value.backward()
+        return value
+
+    opt.step(closure)
+
+
+def view_fits(sharp: Tensor, photo: Tensor, K: Tensor, record: Dict, depth: Tensor, kernel_size: int,
+              path_samples: int) -> Dict[str, float]:  # fmt: skip
+    """PSNR of each model of :data:`MODELS` for one view: ``sharp`` and ``photo`` [1, 3, H, W] sRGB, ``K`` [3, 3],
+    ``record`` the view's motion record (camera-to-reference ``rotvecs`` / ``translations``), ``depth`` [H, W]."""
+    margin = int(np.ceil(float(record.get("max_displacement_px", record["blur_px"])))) + 2
+    src, tgt = rgb_to_linear_rgb(sharp), rgb_to_linear_rgb(photo)
+    rotvecs = -torch.tensor(record["rotvecs"], dtype=sharp.dtype)  # camera-to-reference -> the view's rotation
+    translations = torch.tensor(record.get("translations") or np.zeros_like(record["rotvecs"]), dtype=sharp.dtype)
+
+    def shown(linear: Tensor) -> Tensor:
+        return linear_rgb_to_rgb(linear.clamp_min(0.0)).clamp(0.0, 1.0)
+
+    pick = torch.linspace(0, rotvecs.shape[0] - 1, path_samples).round().long()
+    path = fit_rotation_path(src, tgt, K, rotvecs[pick], margin)
+    along_path = rotation_blur(src, K, path)
+    return {
+        "none": psnr(sharp, photo, margin),
+        "kernel": psnr(shown(fit_kernel(src, tgt, kernel_size, margin)), photo, margin),
+        "rotation": psnr(shown(rotation_blur(src, K, rotvecs)), photo, margin),
+        "path": psnr(shown(along_path), photo, margin),
+        "path + kernel": psnr(shown(fit_kernel(along_path, tgt, kernel_size, margin)), photo, margin),
+        "6-DoF": psnr(shown(depth_blur(src, K, rotvecs, translations, depth)), photo, margin),
+    }
+
+
+def _image(path: Path) -> Tensor:
+    return torch.from_numpy(read_image(path).astype(np.float32) / 255.0).permute(2, 0, 1)[None]
+
+
+@dataclass
+class ShakeFit:
+    data: Path
+    """Generated shaken scene (degradation.json with the true paths, depth/, images/)."""
+    sharp: Path
+    """The same scene rendered sharp (its images/ hold every view)."""
+    views: int = 0
+    """Shaken training views to fit (0: all)."""
+    kernel_size: int = 33
+    """Side of the fitted kernels in pixels (gsmsdr-cpu's full-resolution size)."""
+    path_samples: int = 9
+    """Time samples of the fitted rotation path (the camera_shake model's default)."""
+
+    def main(self) -> None:
+        torch.set_num_threads(1)
+        intrinsics = json.loads((self.data / "scene.json").read_text())["intrinsics"]
+        K = torch.tensor([[intrinsics["fx"], 0.0, intrinsics["cx"]], [0.0, intrinsics["fy"], intrinsics["cy"]],
+                          [0.0, 0.0, 1.0]])  # fmt: skip
+        records = json.loads((self.data / "degradation.json").read_text())["images"]
+        names = [n for n, r in sorted(records.items()) if r["split"] == "train" and "motion" in r.get("effects", {})]
+        if not names:
+            raise SystemExit(f"{self.data}: no shaken training view with a motion record in degradation.json")
+        names = names[: self.views] if self.views > 0 else names
+        print(f"{self.data} against {self.sharp}: {len(names)} views, {self.kernel_size} px kernels, "
+              f"{self.path_samples}-sample paths; PSNR (dB) of each model's best fit to the shaken photo")  # fmt: skip
+        print("| view | blur px | " + " | ".join(MODELS) + " |")
+        print("| --- | ---: | " + " | ".join("---:" for _ in MODELS) + " |")
+        rows = []
+        for name in names:
+            record = records[name]["effects"]["motion"]
+            depth = torch.from_numpy(np.load(self.data / "depth" / f"{Path(name).stem}.npy").astype(np.float32))
+            fits = view_fits(_image(self.sharp / "images" / name), _image(self.data / "images" / name), K, record,
+                             depth, self.kernel_size, self.path_samples)  # fmt: skip
+            rows.append(fits)
+            cells = " | ".join(f"{fits[m]:.2f}" for m in MODELS)
+            print(f"| {name} | {record['blur_px']:.1f} | {cells} |", flush=True)
+        means = " | ".join(f"{np.mean([r[m] for r in rows]):.2f}" for m in MODELS)
+        print(f"| mean | | {means} |")
+
+
+def entrypoint(argv=None) -> None:
+    tyro.cli(ShakeFit, args=argv).main()
+
+
+if __name__ == "__main__":
+    entrypoint()
