@@ -15,8 +15,10 @@ and compared with the photo (PSNR in sRGB over the view minus a margin the shake
 * ``path``: the best rotation path (``--path-samples`` samples, fitted from the true rotations; what
   ``camera_shake`` learns, without its cubic form), then ``path + kernel`` with the best kernel after it (the
   ``gsmsdr-cpu`` model's ceiling);
-* ``6-DoF``: the true rotations and translations, each pixel moved by the view's depth
-  (:func:`gsmsdr_ns.blur.shake.shake_sample_grid`, the ``shake_translation`` model with the true path).
+* ``moving path``: the best path of rotations and translations (``--path-samples`` samples, from the fitted
+  rotation path at rest), each pixel moved by the view's depth (:func:`gsmsdr_ns.blur.shake.shake_sample_grid`,
+  what ``shake_translation`` learns when the depth is right);
+* ``6-DoF``: the true rotations and translations, each pixel moved by the view's depth.
 
 What the best fit of a model leaves is what training with that model cannot explain however well it learns.
 """
@@ -26,7 +28,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Tuple
 
 import numpy as np
 import torch
@@ -39,7 +41,7 @@ from torch.nn.functional import grid_sample
 from gsmsdr_ns.blur.shake import rotation_homographies, shake_sample_grid
 from gsmsdr_ns.io.images import read_image
 
-MODELS = ("none", "kernel", "rotation", "path", "path + kernel", "6-DoF")
+MODELS = ("none", "kernel", "rotation", "path", "path + kernel", "moving path", "6-DoF")
 """Columns of the table, in order."""
 
 
@@ -103,6 +105,22 @@ def fit_rotation_path(source: Tensor, target: Tensor, K: Tensor, start: Tensor, 
     return rotvecs.detach()
 
 
+def fit_moving_path(source: Tensor, target: Tensor, K: Tensor, rotvecs: Tensor, depth: Tensor, margin: int,
+                    iters: int = 40) -> Tuple[Tensor, Tensor]:  # fmt: skip
+    """Rotations and translations [T, 3] each (from ``rotvecs`` and no translation) whose :func:`depth_blur` of
+    ``source`` best matches ``target``."""
+    rot = rotvecs.clone().requires_grad_(True)
+    move = torch.zeros_like(rotvecs).requires_grad_(True)
+    H, W = source.shape[-2:]
+
+    def loss() -> Tensor:
+        d = depth_blur(source, K, rot, move, depth) - target
+        return (d[..., margin : H - margin, margin : W - margin] ** 2).mean()
+
+    _minimise([rot, move], loss, iters)
+    return rot.detach(), move.detach()
+
+
 def _minimise(params: List[Tensor], loss, iters: int) -> None:
     opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iters, history_size=20, line_search_fn="strong_wolfe")
 
@@ -136,6 +154,9 @@ def view_fits(sharp: Tensor, photo: Tensor, K: Tensor, record: Dict, depth: Tens
         "rotation": psnr(shown(rotation_blur(src, K, rotvecs)), photo, margin),
         "path": psnr(shown(along_path), photo, margin),
         "path + kernel": psnr(shown(fit_kernel(along_path, tgt, kernel_size, margin)), photo, margin),
+        "moving path": psnr(
+            shown(depth_blur(src, K, *fit_moving_path(src, tgt, K, path, depth, margin), depth)), photo, margin
+        ),
         "6-DoF": psnr(shown(depth_blur(src, K, rotvecs, translations, depth)), photo, margin),
     }
 
