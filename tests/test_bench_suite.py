@@ -183,7 +183,8 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
                             "full-margin", "full-shake", "full-true",
                             "full-per-pixel", "full-fallback", "full-fallback-coarse", "full-anchor", "full-lens-early",
                             "full-grid4k", "full-cells4", "cpu-poses", "cpu-shake", "cpu-kernels", "cpu-shake-decay",
-                            "cpu-decay", "cpu-shake17", "cpu-shake-move", "cpu-path-weighted",
+                            "cpu-decay", "cpu-shake17", "cpu-shake-move", "cpu-shake-move-late",
+                            "cpu-shake-parallax", "cpu-path-weighted",
                             "cpu-path-weighted-d05", "cpu-path-weighted-eps04", "cpu-paper-loss", "-view", "view",
                             "view-k25", "view-k33", "view-k49", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite",
                             "gsmsdr-cpu", "sharp-degraded-poses", "sharp"}  # fmt: skip
@@ -241,6 +242,9 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert repr(model("cpu-shake")) == repr(model("gsmsdr-cpu"))
     assert options["cpu-shake17"].shake_samples == 17 > options["gsmsdr-cpu"].shake_samples
     assert options["cpu-shake-move"].shake_translation and not options["gsmsdr-cpu"].shake_translation
+    late, parallax = options["cpu-shake-move-late"], options["cpu-shake-parallax"]
+    assert late.shake_translation and late.shake_translation_start == "densify_end" and not late.shake_parallax
+    assert parallax.shake_translation and parallax.shake_parallax and parallax.shake_translation_start == "warmup"
     assert options["cpu-path-weighted"].deconvolved_loss_on_shake
     assert not options["gsmsdr-cpu"].deconvolved_loss_on_shake
     assert options["cpu-path-weighted-eps04"].deconvolved_loss_eps == 0.04 > options["gsmsdr-cpu"].deconvolved_loss_eps

@@ -15,6 +15,7 @@ from gsmsdr_ns.blur.shake import (
     CameraShake,
     apply_camera_shake,
     apply_camera_shake_with_depth,
+    parallax_rotvecs,
     rotation_homographies,
     shake_basis,
     shake_mean_kernel,
@@ -176,6 +177,47 @@ def test_a_translating_shake_path_needs_depth_and_learns_from_the_start():
     first = loss()
     fit(model, loss, steps=200)
     assert float(loss()) < 0.05 * float(first)
+
+
+def test_parallax_rotations_cancel_a_translation_at_the_reference_depth_only():
+    """Offset by :func:`parallax_rotvecs`, a sideways move leaves points at the reference depth about where they
+    were (first order), moves nearer points one way and farther points the other."""
+    depth = torch.full((48, 64), 2.0)
+    depth[:, :21] = 1.0
+    depth[:, 43:] = 4.0
+    translations = torch.tensor([[0.02, -0.01, 0.0]])
+    rotvecs = parallax_rotvecs(translations, torch.tensor(2.0))
+    assert torch.allclose(rotvecs, torch.tensor([[0.005, 0.01, 0.0]]))
+    grid = shake_sample_grid(K, rotvecs, translations, depth)
+    pixels_x = (grid[0, ..., 0] + 1.0) * (64 - 1) / 2.0
+    shift = pixels_x - torch.arange(64, dtype=torch.float32)
+    # f c_x (1/z - 1/z_ref): +0.6 px at depth 1, 0 at 2, -0.3 px at 4 (60 px focal, 0.02 units); 22 px off the
+    # axis a rotation moves a pixel about 13 % further than at the centre, so the cancellation is approximate there
+    assert shift[24, 32].abs() < 0.02
+    assert abs(float(shift[24, 10]) - 0.6) < 0.1 and abs(float(shift[24, 54]) + 0.3) < 0.1
+
+
+def test_a_parallax_path_rotates_only_before_its_translations_start():
+    """``translate=False`` is the rotation path alone (its translations get no gradient); with ``translate`` and
+    ``parallax`` a constant-depth render is blurred about as by the rotations alone, where the same translations
+    without ``parallax`` blur it further."""
+    image = textured(4)
+    view = torch.tensor([0])
+    model = CameraShake(1, num_samples=5, seed=1, translation=True, parallax=True)
+    with torch.no_grad():
+        model.translation_coefficients.copy_(torch.tensor([[[20.0, -10.0, 0.0], [0.0, 5.0, 0.0], [5.0, 0.0, 0.0]]]))
+    rotation_only = apply_camera_shake(image, rotation_homographies(K, model.rotvecs(view, True)), linear_light=True)
+    unmoved = model(image, K, view, centred=True, translate=False)
+    assert torch.equal(unmoved, rotation_only)
+    unmoved.sum().backward()
+    assert model.translation_coefficients.grad is None
+    flat_depth = torch.full((48, 64), 2.0)
+    inner = (Ellipsis, slice(6, -6), slice(6, -6))
+    parallax_change = (model(image, K, view, centred=True, depth=flat_depth) - rotation_only)[inner].abs().max()
+    moving = CameraShake(1, num_samples=5, seed=1, translation=True)
+    moving.load_state_dict(model.state_dict())
+    moving_change = (moving(image, K, view, centred=True, depth=flat_depth) - rotation_only)[inner].abs().max()
+    assert moving_change > 0.05 and parallax_change < 0.2 * moving_change
 
 
 def test_the_path_kernel_of_a_still_camera_is_a_point_and_a_pan_spreads_it_along_x():

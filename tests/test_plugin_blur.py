@@ -459,6 +459,34 @@ def test_a_translating_shake_path_renders_depth_and_learns():
         assert grad is not None and float(grad[1].abs().sum()) > 0 and torch.equal(grad[0], torch.zeros_like(grad[0]))
 
 
+def test_shake_translations_start_when_densification_ends_if_asked():
+    """``shake_translation_start="densify_end"``: the paths rotate only (no depth, no translation gradient) until
+    the model's ``stop_split_at``, then translate; ``shake_parallax`` reaches the module."""
+    config = DegradationConfig(
+        camera_shake=True, shake_translation=True, shake_translation_start="densify_end", shake_parallax=True, warmup=0
+    )
+    model = build({"degradations": records("motion", 2)}, n=2, num_downscales=0, stop_split_at=40,
+                  degradation_model=config, blur_field=BlurFieldConfig(mode="view"))  # fmt: skip
+    degradation = model.degradation
+    assert degradation.shake_translation_start == 40 and degradation.camera_shake.parallax
+    assert [degradation.plan(0, 1, step).shake_depth for step in (0, 39, 40, 100)] == [False, False, True, True]
+    assert not degradation.plan(0, 1, 39).needs_depth
+    model.train()
+    model.optimizers = None
+    camera = make_camera(look_from([2.0, 0.5, 1.0]), width=32, height=24)
+    camera.metadata = {"cam_idx": 1}
+    shake = degradation.camera_shake
+    for step, translates in ((39, False), (40, True)):
+        model.step = step
+        shake.zero_grad(set_to_none=True)
+        model.get_outputs(camera)["rgb_degraded"].sum().backward()
+        assert float(shake.coefficients.grad[1].abs().sum()) > 0
+        grad = shake.translation_coefficients.grad
+        assert (grad is not None and float(grad[1].abs().sum()) > 0) == translates
+    with pytest.raises(ValueError, match="shake_translation_start"):
+        DegradationConfig(shake_translation_start="never")
+
+
 def test_warm_up_follows_the_step_being_rendered():
     """The blur field is skipped until the model's step reaches the warm-up."""
     model = build({"degradations": records("motion")}, degradation_model=DegradationConfig(warmup=3))

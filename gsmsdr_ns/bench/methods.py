@@ -310,6 +310,24 @@ METHODS: Dict[str, MethodSpec] = {
             shake_translation=True,
         ),  # fmt: skip
         _method(
+            "cpu-shake-move-late",
+            "gsmsdr-cpu + translating shake paths from densify end",
+            "gsmsdr-cpu",
+            "cpu-shake-move whose paths start translating when the Gaussians stop densifying (the render's depth has "
+            "formed); they rotate only until then",
+            shake_translation=True,
+            shake_translation_start="densify_end",
+        ),  # fmt: skip
+        _method(
+            "cpu-shake-parallax",
+            "gsmsdr-cpu + parallax-only shake translations",
+            "gsmsdr-cpu",
+            "cpu-shake-move whose translations move the image relative to the render's median depth only (the "
+            "rotation path carries the blur at that depth)",
+            shake_translation=True,
+            shake_parallax=True,
+        ),  # fmt: skip
+        _method(
             "cpu-path-weighted",
             "gsmsdr-cpu, path in the deconvolved loss",
             "gsmsdr-cpu",

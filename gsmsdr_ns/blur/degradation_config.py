@@ -81,6 +81,16 @@ class DegradationConfig:
     than far ones, so the warp reads the render's depth (rendered for these steps, not differentiated through). Off
     in every preset: on the generated 600x400 strong shake it lost 0.2 dB to the rotation path alone and trained
     slower (docs/design.md)."""
+    shake_translation_start: Literal["warmup", "densify_end"] = "warmup"
+    """When the translation paths start: with the rotation paths after ``warmup``, or once the Gaussians stop
+    densifying (the model's ``stop_split_at``, never before ``warmup``), when the render's depth they read has
+    formed. Until then the paths rotate only."""
+    shake_parallax: bool = False
+    """With ``shake_translation``, a translation moves the image relative to the view's median depth only: the
+    rotation path is offset by the rotation that moves a point at the render's median depth on the optical axis as
+    far as the translation does, so the rotation path carries the blur at that depth and the translation only
+    what differs with depth (near points one way, far points the other). False: both paths move every pixel and
+    trade off against each other through the render's depth."""
     render_margin: bool = False
     """Render the current kernel's half-width beyond every border of a blurred image and crop after blurring: a
     photo's border pixels are blurred with what lay just outside the frame, which replicate padding cannot know.
@@ -127,6 +137,10 @@ class DegradationConfig:
             raise ValueError(f"fallback_margin must be in [0, 1), got {self.fallback_margin}")
         if not self.fallback_sigma >= 0:
             raise ValueError(f"fallback_sigma must be >= 0, got {self.fallback_sigma}")
+        if self.shake_translation_start not in ("warmup", "densify_end"):
+            raise ValueError(
+                f"shake_translation_start must be 'warmup' or 'densify_end', got {self.shake_translation_start!r}"
+            )
         if self.thin_lens_start not in ("warmup", "densify_end"):
             raise ValueError(f"thin_lens_start must be 'warmup' or 'densify_end', got {self.thin_lens_start!r}")
         if not self.thin_lens_initial_aperture > 0:

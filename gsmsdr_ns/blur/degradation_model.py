@@ -89,8 +89,8 @@ class DegradationModel(nn.Module):
         resolution_schedule: splatfacto's ``resolution_schedule`` (steps between resolution doublings).
         preview_max_side: the viewer outputs' working resolution (see :meth:`preview`; 0: full resolution).
         densify_until: the step the Gaussians stop densifying (splatfacto's ``stop_split_at``), where the thin lens
-            starts when the config's ``thin_lens_start`` is ``"densify_end"``; None: unknown, the lens starts with
-            the field.
+            starts when the config's ``thin_lens_start`` is ``"densify_end"`` (and the shake paths' translations
+            when ``shake_translation_start`` is); None: unknown, both start with the field.
 
     Attributes (None when no image needs them): ``camera_shake`` (:class:`CameraShake`), ``thin_lens``
     (:class:`ThinLensDefocus`), ``blur_field`` (:class:`BlurField`), ``hpko`` (:class:`HPKOScheduler`),
@@ -120,6 +120,10 @@ class DegradationModel(nn.Module):
         """First step the thin lens runs (:attr:`DegradationConfig.thin_lens_start`)."""
         if config.thin_lens_start == "densify_end" and densify_until is not None:
             self.lens_start = max(config.warmup, int(densify_until))
+        self.shake_translation_start = config.warmup
+        """First step the shake paths translate (:attr:`DegradationConfig.shake_translation_start`)."""
+        if config.shake_translation_start == "densify_end" and densify_until is not None:
+            self.shake_translation_start = max(config.warmup, int(densify_until))
         self.preview_max_side = int(preview_max_side)
         self.blur_field: Optional[BlurField] = None
         self.thin_lens: Optional[ThinLensDefocus] = None
@@ -151,7 +155,9 @@ class DegradationModel(nn.Module):
                 self.fallback = ExplanationGate(num_views, config.fallback_decay, config.fallback_margin)
         self.camera_shake: Optional[CameraShake] = None
         if self.blur_field is not None and config.camera_shake and any(p.motion for p in self.profiles):
-            self.camera_shake = CameraShake(num_views, config.shake_samples, translation=config.shake_translation)
+            self.camera_shake = CameraShake(
+                num_views, config.shake_samples, translation=config.shake_translation, parallax=config.shake_parallax
+            )
         mixres = [p for p in self.profiles if p.needs_resolution_model]
         if mixres:
             upsample = Counter(p.mixres_upsample for p in mixres).most_common(1)[0][0]
@@ -274,7 +280,7 @@ class DegradationModel(nn.Module):
             render_downscale=render_downscale,
             blur_field=runs_field,
             shake=shake,
-            shake_depth=shake and config.shake_translation,
+            shake_depth=shake and config.shake_translation and step >= self.shake_translation_start,
             margin=blur_scale.kernel_size // 2 if config.render_margin else 0,
             deconvolved_loss=(runs_field or (lens and config.deconvolved_loss_on_lens))
             and config.deconvolved_loss_weight > 0,
@@ -326,7 +332,9 @@ class DegradationModel(nn.Module):
             centred = not self.profiles[plan.view_id].exact_pose
             linear_light = self.config.linear_light
             shake_depth = None if depth is None or not plan.shake_depth else depth[..., 0]
-            image = timed("kernels", self.camera_shake, image, K, view_ids, centred, linear_light, shake_depth)
+            image = timed(
+                "kernels", self.camera_shake, image, K, view_ids, centred, linear_light, shake_depth, plan.shake_depth
+            )
             if plan.deconvolved_loss and self.config.deconvolved_loss_on_shake and plan.blur_scale is not None:
                 height, width = image.shape[-2:]
                 max_size = 2 * plan.blur_scale.kernel_size + 1

@@ -32,6 +32,7 @@ __all__ = [
     "CameraShake",
     "apply_camera_shake",
     "apply_camera_shake_with_depth",
+    "parallax_rotvecs",
     "rotation_homographies",
     "shake_basis",
     "shake_mean_kernel",
@@ -185,6 +186,25 @@ def shake_sample_grid(K: Tensor, rotvecs: Tensor, translations: Tensor, depth: T
     return uv * scale - 1.0
 
 
+def parallax_rotvecs(translations: Tensor, reference_depth: Tensor) -> Tensor:
+    """Rotations that undo, to first order, what ``translations`` do to a point at ``reference_depth`` on the
+    optical axis: added to a path's rotations, its translations move only points nearer or farther than that.
+
+    A camera moved by ``c`` sees the point ``(0, 0, z)`` at ``(c_x, c_y, z + c_z)``; turned by the small rotation
+    ``r`` it sees it at ``(-r_y z, r_x z, z)`` (see :func:`shake_sample_grid`), so ``r = (-c_y / z, c_x / z, 0)``
+    cancels the sideways move. Forward motion has no rotation equivalent and is left as it is.
+
+    Args:
+        translations: [T, 3] camera translations (scene units, camera frame).
+        reference_depth: scalar depth (scene units, > 0).
+    Returns:
+        [T, 3] rotation vectors (radians).
+    """
+    inverse = 1.0 / reference_depth.to(translations.dtype)
+    zero = torch.zeros_like(translations[:, 0])
+    return torch.stack([-translations[:, 1] * inverse, translations[:, 0] * inverse, zero], dim=1)
+
+
 def apply_camera_shake_with_depth(image: Tensor, grid: Tensor, linear_light: bool = True) -> Tensor:
     """Average of ``image`` read at each time sample's grid (:func:`shake_sample_grid`).
 
@@ -216,6 +236,8 @@ class CameraShake(nn.Module):
         seed: seed of the initial coefficients' generator (the global random stream is left alone).
         translation: also learn a camera translation path per view (cubic, the same basis): the blur then depends
             on the render's depth, which :meth:`forward` needs.
+        parallax: the translations move the image relative to each render's median depth only
+            (:func:`parallax_rotvecs` offsets the rotations), so the rotation path carries the blur at that depth.
     """
 
     basis_through_pose: Tensor  # buffers (register_buffer in __init__)
@@ -228,8 +250,10 @@ class CameraShake(nn.Module):
         initial_radians: float = 1e-3,
         seed: int = 0,
         translation: bool = False,
+        parallax: bool = False,
     ) -> None:
         super().__init__()
+        self.parallax = bool(parallax)
         if num_views < 1:
             raise ValueError(f"num_views must be >= 1, got {num_views}")
         self.num_samples = int(num_samples)
@@ -269,13 +293,19 @@ class CameraShake(nn.Module):
         centred: bool,
         linear_light: bool = True,
         depth: Optional[Tensor] = None,
+        translate: bool = True,
     ) -> Tensor:
         """The render ``image`` [1, C, H, W] (intrinsics ``K`` [3, 3]) blurred along view ``view_ids`` [1]'s path;
-        with ``translation``, ``depth`` [H, W] is the render's depth (not differentiated through)."""
+        with ``translation`` and ``translate``, ``depth`` [H, W] is the render's depth (not differentiated through).
+        ``translate`` False: the rotation path alone (the translations get no gradient)."""
         rotvecs = self.rotvecs(view_ids, centred)
-        if self.translation_coefficients is None:
+        if self.translation_coefficients is None or not translate:
             return apply_camera_shake(image, rotation_homographies(K, rotvecs), linear_light)
         if depth is None:
             raise ValueError("a camera shake path with translation needs the render's depth")
-        grid = shake_sample_grid(K, rotvecs, self.translations(view_ids, centred), depth.detach().clamp_min(1e-3))
+        depth = depth.detach().clamp_min(1e-3)
+        translations = self.translations(view_ids, centred)
+        if self.parallax:
+            rotvecs = rotvecs + parallax_rotvecs(translations, depth.median())
+        grid = shake_sample_grid(K, rotvecs, translations, depth)
         return apply_camera_shake_with_depth(image, grid, linear_light)
