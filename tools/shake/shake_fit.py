@@ -20,7 +20,9 @@ and compared with the photo (PSNR in sRGB over the view minus a margin the shake
   what ``shake_translation`` learns when the depth is right);
 * ``6-DoF``: the true rotations and translations, each pixel moved by the view's depth.
 
-What the best fit of a model leaves is what training with that model cannot explain however well it learns.
+What the best fit of a model leaves is what training with that model cannot explain however well it learns. The
+fitted columns are local optima of L-BFGS from the starts named above: approximate ceilings, which can move by a
+few tenths of a dB with the start or with rounding.
 """
 
 from __future__ import annotations
@@ -34,12 +36,16 @@ import numpy as np
 import torch
 import tyro
 from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
-from kornia.geometry.transform import warp_perspective
 from torch import Tensor
-from torch.nn.functional import grid_sample
 
-from gsmsdr_ns.blur.shake import rotation_homographies, shake_sample_grid
-from gsmsdr_ns.io.images import read_image
+from gsmsdr_ns.blur.shake import (
+    apply_camera_shake,
+    apply_camera_shake_with_depth,
+    rotation_homographies,
+    shake_sample_grid,
+)
+from gsmsdr_ns.io.images import read_image_float
+from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels
 
 MODELS = ("none", "kernel", "rotation", "path", "path + kernel", "moving path", "6-DoF")
 """Columns of the table, in order."""
@@ -52,44 +58,32 @@ def psnr(a: Tensor, b: Tensor, margin: int) -> float:
 
 
 def rotation_blur(image: Tensor, K: Tensor, rotvecs: Tensor) -> Tensor:
-    """Mean of ``image`` [1, C, H, W] warped by the camera rotations ``rotvecs`` [T, 3] (this package's rotation
-    path convention: the view reads the sharp image at ``K R^T K^-1 x``)."""
-    H = rotation_homographies(K, rotvecs)
-    stack = image.expand(H.shape[0], -1, -1, -1)
-    warped = warp_perspective(stack, H, image.shape[-2:], mode="bilinear", padding_mode="border", align_corners=True)
-    return warped.mean(0, keepdim=True)
+    """``image`` [1, C, H, W] (already linear) averaged along the camera rotations ``rotvecs`` [T, 3]."""
+    return apply_camera_shake(image, rotation_homographies(K, rotvecs), linear_light=False)
 
 
 def depth_blur(image: Tensor, K: Tensor, rotvecs: Tensor, translations: Tensor, depth: Tensor) -> Tensor:
-    """Mean of ``image`` [1, C, H, W] read along a 6-DoF path, each pixel moved by its ``depth`` [H, W]."""
-    grid = shake_sample_grid(K, rotvecs, translations, depth)
-    stack = image.expand(grid.shape[0], -1, -1, -1)
-    return grid_sample(stack, grid.to(image.dtype), mode="bilinear", padding_mode="border", align_corners=True).mean(
-        0, keepdim=True
-    )
+    """``image`` [1, C, H, W] (already linear) averaged along a 6-DoF path, each pixel moved by its ``depth``
+    [H, W]."""
+    return apply_camera_shake_with_depth(image, shake_sample_grid(K, rotvecs, translations, depth), linear_light=False)
 
 
 def fit_kernel(source: Tensor, target: Tensor, size: int, margin: int, iters: int = 100) -> Tensor:
-    """``source`` [1, C, H, W] convolved with the ``size`` x ``size`` kernel (shared by the channels) that best
-    matches ``target`` in least squares inside ``margin`` px of the border."""
+    """``source`` [1, C, H, W] blurred by the ``size`` x ``size`` kernel (shared by the channels,
+    :func:`~gsmsdr_ns.ops.pixel_kernels.apply_image_kernels`) that best matches ``target`` in least squares inside
+    ``margin`` px of the border."""
     H, W = source.shape[-2:]
-    shape = (H + size, W + size)
-    spectrum = torch.fft.rfft2(source, s=shape)
-    kernel = torch.zeros(size, size, dtype=source.dtype)
-    kernel[size // 2, size // 2] = 1.0
+    kernel = torch.zeros(1, size * size, dtype=source.dtype)
+    kernel[0, (size * size) // 2] = 1.0
     kernel.requires_grad_(True)
-    c = size // 2
-
-    def convolve(k: Tensor) -> Tensor:
-        return torch.fft.irfft2(spectrum * torch.fft.rfft2(k, s=shape), s=shape)[..., c : c + H, c : c + W]
 
     def loss() -> Tensor:
-        d = convolve(kernel) - target
+        d = apply_image_kernels(source, kernel) - target
         return (d[..., margin : H - margin, margin : W - margin] ** 2).mean()
 
     _minimise([kernel], loss, iters)
     with torch.no_grad():
-        return convolve(kernel)
+        return apply_image_kernels(source, kernel)
 
 
 def fit_rotation_path(source: Tensor, target: Tensor, K: Tensor, start: Tensor, margin: int, iters: int = 40) -> Tensor:
@@ -162,7 +156,7 @@ def view_fits(sharp: Tensor, photo: Tensor, K: Tensor, record: Dict, depth: Tens
 
 
 def _image(path: Path) -> Tensor:
-    return torch.from_numpy(read_image(path).astype(np.float32) / 255.0).permute(2, 0, 1)[None]
+    return torch.from_numpy(read_image_float(path)).permute(2, 0, 1)[None]
 
 
 @dataclass
