@@ -137,12 +137,9 @@ class DegradationConfig:
             raise ValueError(f"fallback_margin must be in [0, 1), got {self.fallback_margin}")
         if not self.fallback_sigma >= 0:
             raise ValueError(f"fallback_sigma must be >= 0, got {self.fallback_sigma}")
-        if self.shake_translation_start not in ("warmup", "densify_end"):
-            raise ValueError(
-                f"shake_translation_start must be 'warmup' or 'densify_end', got {self.shake_translation_start!r}"
-            )
-        if self.thin_lens_start not in ("warmup", "densify_end"):
-            raise ValueError(f"thin_lens_start must be 'warmup' or 'densify_end', got {self.thin_lens_start!r}")
+        for name in ("thin_lens_start", "shake_translation_start"):
+            if getattr(self, name) not in ("warmup", "densify_end"):
+                raise ValueError(f"{name} must be 'warmup' or 'densify_end', got {getattr(self, name)!r}")
         if not self.thin_lens_initial_aperture > 0:
             raise ValueError(f"thin_lens_initial_aperture must be > 0, got {self.thin_lens_initial_aperture}")
         if not self.deconvolved_loss_weight >= 0:

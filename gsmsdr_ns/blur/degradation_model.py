@@ -78,6 +78,14 @@ def _hwc(x: Tensor) -> Tensor:
     return x[0].permute(1, 2, 0)
 
 
+def _start_step(start: str, warmup: int, densify_until: Optional[int]) -> int:
+    """First step of a model part that starts at ``"warmup"`` or ``"densify_end"`` (never before ``warmup``; at
+    ``warmup`` when ``densify_until`` is unknown)."""
+    if start == "densify_end" and densify_until is not None:
+        return max(warmup, int(densify_until))
+    return warmup
+
+
 class DegradationModel(nn.Module):
     """The degradation models of a set of training images, built only for the effects their profiles call for.
 
@@ -116,14 +124,10 @@ class DegradationModel(nn.Module):
         super().__init__()
         self.profiles: List[DegradationProfile] = list(profiles)
         self.config = config = DegradationConfig() if config is None else config
-        self.lens_start = config.warmup
+        self.lens_start = _start_step(config.thin_lens_start, config.warmup, densify_until)
         """First step the thin lens runs (:attr:`DegradationConfig.thin_lens_start`)."""
-        if config.thin_lens_start == "densify_end" and densify_until is not None:
-            self.lens_start = max(config.warmup, int(densify_until))
-        self.shake_translation_start = config.warmup
+        self.shake_translation_start = _start_step(config.shake_translation_start, config.warmup, densify_until)
         """First step the shake paths translate (:attr:`DegradationConfig.shake_translation_start`)."""
-        if config.shake_translation_start == "densify_end" and densify_until is not None:
-            self.shake_translation_start = max(config.warmup, int(densify_until))
         self.preview_max_side = int(preview_max_side)
         self.blur_field: Optional[BlurField] = None
         self.thin_lens: Optional[ThinLensDefocus] = None
