@@ -109,8 +109,34 @@ def test_demo_config_is_the_demo_preset(tmp_path: Path, steps: int) -> None:
         (dict(steps=10, resolution_fraction=1.5), "resolution_fraction"),
         (dict(steps=10, densify_warmup_fraction=-0.1), "densify_warmup_fraction"),
         (dict(steps=10, num_downscales=-1), "num_downscales"),
+        (dict(steps=10, lr_decay_fraction=0.0), "lr_decay_fraction"),
+        (dict(steps=10, sh_degree_fraction=1.5), "sh_degree_fraction"),
     ],
 )
 def test_invalid_schedule_names_the_field(kwargs: dict, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         TrainingSchedule(**kwargs)
+
+
+def test_decay_fraction_reaches_the_final_rate_early_and_holds_it() -> None:
+    """``lr_decay_fraction`` 0.75: the means' rate (nerfstudio's scheduler, as the trainer builds it) is at its
+    final value from three quarters of the steps on, and above it before; the SH degrees unlock at
+    ``sh_degree_fraction`` of the steps."""
+    import torch
+
+    config = gsmsdr_trainer_config()
+    TrainingSchedule.bench(1000, lr_decay_fraction=0.75, sh_degree_fraction=0.1).apply(config)
+    assert config.pipeline.model.sh_degree_interval == 100
+    group = config.optimizers["means"]
+    assert group["scheduler"].max_steps == 750 and config.optimizers["camera_opt"]["scheduler"].warmup_steps == 75
+    optimizer = torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=group["optimizer"].lr)
+    scheduler = group["scheduler"].setup().get_scheduler(optimizer, group["optimizer"].lr)
+    rates = []
+    for _ in range(1000):
+        rates.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step()
+    final = group["scheduler"].lr_final
+    assert rates[0] == pytest.approx(group["optimizer"].lr)
+    assert rates[700] > 1.2 * final
+    assert rates[750] == pytest.approx(final) and rates[999] == pytest.approx(final)

@@ -47,6 +47,11 @@ class TrainingSchedule:
     lr_schedulers: Tuple[str, ...] = ("means", "camera_opt", "bilateral_grid", "blur_shake", "blur_view_kernels")
     """Optimizer groups whose learning-rate scheduler is scaled to ``steps`` (warm-up capped at a tenth of them);
     groups without a scheduler keep their constant rate."""
+    lr_decay_fraction: float = 1.0
+    """The scaled schedulers reach their final rate at this fraction of the steps and hold it after."""
+    sh_degree_fraction: float = 0.25
+    """Steps between SH degree unlocks, as a fraction of the steps (0.25: degree 3 at three quarters; splatfacto:
+    1000 of 30000)."""
 
     def __post_init__(self) -> None:
         if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 1:
@@ -61,6 +66,9 @@ class TrainingSchedule:
             value = getattr(self, name)
             if value is not None and not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {value}")
+        for name in ("lr_decay_fraction", "sh_degree_fraction"):
+            if not 0.0 < getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
 
     @classmethod
     def bench(cls, steps: int, **overrides: Any) -> "TrainingSchedule":
@@ -104,12 +112,14 @@ class TrainingSchedule:
             model.stop_screen_size_at = max(steps * self.screen_size_split_until // SPLATFACTO_STEPS, 1)
         model.reset_alpha_every = self.reset_alpha_every
         model.densify_grad_thresh = self.densify_grad_thresh
-        model.sh_degree_interval = max(steps // 4, 1)
+        model.sh_degree_interval = max(int(steps * self.sh_degree_fraction), 1)
+        decay_steps = max(int(steps * self.lr_decay_fraction), 1)
         for name in self.lr_schedulers:
             scheduler = config.optimizers.get(name, {}).get("scheduler")
             if scheduler is not None:
-                scheduler.max_steps = steps
-                scheduler.warmup_steps = min(scheduler.warmup_steps, steps // 10)
+                # nerfstudio's exponential decay holds lr_final after max_steps
+                scheduler.max_steps = decay_steps
+                scheduler.warmup_steps = min(scheduler.warmup_steps, steps // 10, decay_steps // 10)
 
 
 __all__ = ["SPLATFACTO_STEPS", "TrainingSchedule"]
