@@ -239,9 +239,11 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     assert options["full-margin"].render_margin and not options["full"].render_margin
     assert options["full-shake"].camera_shake and not options["full"].camera_shake
     assert options["gsmsdr-cpu"].camera_shake and options["gsmsdr-cpu"].render_margin
-    assert repr(model("cpu-shake")) == repr(model("gsmsdr-cpu"))
+    assert repr(model("cpu-shake-parallax")) == repr(model("gsmsdr-cpu"))
+    assert options["gsmsdr-cpu"].shake_translation and options["gsmsdr-cpu"].shake_parallax
+    assert options["cpu-shake"].camera_shake and not options["cpu-shake"].shake_translation
     assert options["cpu-shake17"].shake_samples == 17 > options["gsmsdr-cpu"].shake_samples
-    assert options["cpu-shake-move"].shake_translation and not options["gsmsdr-cpu"].shake_translation
+    assert options["cpu-shake-move"].shake_translation and not options["cpu-shake-move"].shake_parallax
     late, parallax = options["cpu-shake-move-late"], options["cpu-shake-parallax"]
     assert late.shake_translation and late.shake_translation_start == "densify_end" and not late.shake_parallax
     assert parallax.shake_translation and parallax.shake_parallax and parallax.shake_translation_start == "warmup"

@@ -59,9 +59,10 @@ def test_demo_preset_values(tmp_path: Path) -> None:
 
 
 def test_cpu_preset_is_mode_view_on_the_real_size_suites_schedule(tmp_path: Path) -> None:
-    """gsmsdr-cpu = the gsmsdr preset with one kernel per view (9 / 17 / 33 px) after a camera rotation path (with
-    the render margin), trained on the real-size suite's schedule at 6000 steps; so the suite's `gsmsdr-cpu` row at
-    those steps trains the preset as ns-train does (`view-k33`'s field, `cpu-shake`'s model)."""
+    """gsmsdr-cpu = the gsmsdr preset with one kernel per view (9 / 17 / 33 px) after a camera path (with the
+    render margin; rotations, and translations relative to the median depth), trained on the real-size suite's
+    schedule at 6000 steps; so the suite's `gsmsdr-cpu` row at those steps trains the preset as ns-train does
+    (`view-k33`'s field, `cpu-shake-parallax`'s model)."""
     assert CPU_SCHEDULE.steps == 6000
     from gsmsdr_ns.bench.suite_config import find_suite_file, load_suite
 
@@ -69,6 +70,7 @@ def test_cpu_preset_is_mode_view_on_the_real_size_suites_schedule(tmp_path: Path
     field, degradation = config.pipeline.model.blur_field, config.pipeline.model.degradation_model
     assert config.method_name == "gsmsdr-cpu" and field.mode == "view" and field.kernel_sizes == (9, 17, 33)
     assert degradation.camera_shake and degradation.render_margin
+    assert degradation.shake_translation and degradation.shake_parallax
     expected = gsmsdr_trainer_config()
     expected.pipeline.model.blur_field = field
     expected.pipeline.model.degradation_model = degradation
@@ -81,7 +83,7 @@ def test_cpu_preset_is_mode_view_on_the_real_size_suites_schedule(tmp_path: Path
     assert _settings(as_bench) == _settings(config) and as_bench.pipeline.model.blur_field == field
     view = method_spec("view-k33").make_config(tmp_path, tmp_path / "out")
     assert view.pipeline.model.blur_field == field
-    shake = method_spec("cpu-shake").make_config(tmp_path, tmp_path / "out")
+    shake = method_spec("cpu-shake-parallax").make_config(tmp_path, tmp_path / "out")
     suite.schedule_for(CPU_SCHEDULE.steps).apply(shake)
     assert repr(as_bench.pipeline.model) == repr(shake.pipeline.model)
 

@@ -272,10 +272,12 @@ METHODS: Dict[str, MethodSpec] = {
             "cpu-shake",
             "gsmsdr-cpu + camera shake paths",
             "gsmsdr-cpu",
-            "gsmsdr-cpu with the render margin and a learnt camera rotation path before the per-view kernels, named "
-            "(the preset's since the paths paid; the published shake suites name it)",
+            "gsmsdr-cpu with the render margin and a learnt camera rotation path (no translation) before the "
+            "per-view kernels: the preset from the paths' adoption to the parallax translations' (the published "
+            "shake suites name it)",
             render_margin=True,
             camera_shake=True,
+            shake_translation=False,
         ),  # fmt: skip
         MethodSpec(
             "cpu-shake-decay",
@@ -306,8 +308,10 @@ METHODS: Dict[str, MethodSpec] = {
             "cpu-shake-move",
             "gsmsdr-cpu + translating shake paths",
             "gsmsdr-cpu",
-            "gsmsdr-cpu whose shake paths also move the camera (the warp reads the render's depth)",
+            "gsmsdr-cpu whose shake paths also move the camera (the warp reads the render's depth), the "
+            "translations moving every pixel (not only what differs from the median depth)",
             shake_translation=True,
+            shake_parallax=False,
         ),  # fmt: skip
         _method(
             "cpu-shake-move-late",
@@ -317,13 +321,14 @@ METHODS: Dict[str, MethodSpec] = {
             "formed); they rotate only until then",
             shake_translation=True,
             shake_translation_start="densify_end",
+            shake_parallax=False,
         ),  # fmt: skip
         _method(
             "cpu-shake-parallax",
             "gsmsdr-cpu + parallax-only shake translations",
             "gsmsdr-cpu",
             "cpu-shake-move whose translations move the image relative to the render's median depth only (the "
-            "rotation path carries the blur at that depth)",
+            "rotation path carries the blur at that depth), named (the preset's since it paid)",
             shake_translation=True,
             shake_parallax=True,
         ),  # fmt: skip

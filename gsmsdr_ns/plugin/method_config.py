@@ -143,12 +143,15 @@ def gsmsdr_lite_trainer_config() -> GSMSDRTrainerConfig:
 
 
 def gsmsdr_cpu_trainer_config() -> GSMSDRTrainerConfig:
-    """A fresh ``gsmsdr-cpu`` trainer config (``ns-train gsmsdr-cpu``): a learnt camera rotation path and per-view
-    kernels of up to 33 px on views that may be shaken (rendered with a margin), the thin lens for defocus, on the
-    6000-step :data:`CPU_SCHEDULE`, for real-size captures on a CPU."""
+    """A fresh ``gsmsdr-cpu`` trainer config (``ns-train gsmsdr-cpu``): a learnt camera path (rotations, and
+    translations for what differs from the render's median depth) and per-view kernels of up to 33 px on views that
+    may be shaken (rendered with a margin), the thin lens for defocus, on the 6000-step :data:`CPU_SCHEDULE`, for
+    real-size captures on a CPU."""
     model = GSMSDRModelConfig(
         blur_field=BlurFieldConfig(mode="view", kernel_sizes=(9, 17, 33)),
-        degradation_model=DegradationConfig(render_margin=True, camera_shake=True),
+        degradation_model=DegradationConfig(
+            render_margin=True, camera_shake=True, shake_translation=True, shake_parallax=True
+        ),
     )
     config = _trainer_config("gsmsdr-cpu", model, CPU_SCHEDULE.steps)
     CPU_SCHEDULE.apply(config)
