@@ -78,9 +78,9 @@ class DegradationConfig:
     """Time samples of the exposure the render is warped to along the rotation path."""
     shake_translation: bool = False
     """With ``camera_shake``, also learn a camera translation path per view: a moving camera blurs near points more
-    than far ones, so the warp reads the render's depth (rendered for these steps, not differentiated through). Off
-    in every preset: on the generated 600x400 strong shake it lost 0.2 dB to the rotation path alone and trained
-    slower (docs/design.md)."""
+    than far ones, so the warp reads the render's depth (rendered for these steps, not differentiated through). On
+    in ``gsmsdr-cpu``, with ``shake_parallax``: alone it lost 0.2 dB to the rotation path on the generated 600x400
+    strong shake, with it gained 0.44 dB there at 6000 steps (docs/design.md)."""
     shake_translation_start: Literal["warmup", "densify_end"] = "warmup"
     """When the translation paths start: with the rotation paths after ``warmup``, or once the Gaussians stop
     densifying (the model's ``stop_split_at``, never before ``warmup``), when the render's depth they read has
@@ -90,7 +90,7 @@ class DegradationConfig:
     rotation path is offset by the rotation that moves a point at the render's median depth on the optical axis as
     far as the translation does, so the rotation path carries the blur at that depth and the translation only
     what differs with depth (near points one way, far points the other). False: both paths move every pixel and
-    trade off against each other through the render's depth."""
+    trade off against each other through the render's depth. On in ``gsmsdr-cpu``."""
     render_margin: bool = False
     """Render the current kernel's half-width beyond every border of a blurred image and crop after blurring: a
     photo's border pixels are blurred with what lay just outside the frame, which replicate padding cannot know.
