@@ -113,7 +113,7 @@ def _build(spec: Mapping[str, Any]):
 
     import torch
 
-    from gsmsdr_ns.bench.methods import apply_overrides
+    from gsmsdr_ns.bench.method_base import apply_overrides
     from gsmsdr_ns.blur.defocus import ThinLensDefocus
     from gsmsdr_ns.blur.degradation_config import DegradationConfig
     from gsmsdr_ns.blur.field import BlurFieldConfig

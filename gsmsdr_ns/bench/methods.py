@@ -16,169 +16,23 @@ to every method.
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Dict, Optional, Tuple
+from typing import Dict, Tuple
 
-BASES = ("plain", "gsmsdr", "gsmsdr-lite", "gsmsdr-cpu", "sharp")
-"""Presets a method starts from (see the module docstring)."""
-
-
-def base_config(base: str, data: Path, output_dir: Path):
-    """The TrainerConfig of the preset ``base`` on ``data``: no viewer, no periodic evaluation or image logging,
-    CPU unless CUDA is there (schedules not yet shortened)."""
-    from gsmsdr_ns.plugin import method_config as presets
-
-    if base not in BASES:
-        raise ValueError(f"unknown base preset {base!r}; valid: {', '.join(BASES)}")
-    make = {"gsmsdr-lite": presets.gsmsdr_lite_trainer_config, "gsmsdr-cpu": presets.gsmsdr_cpu_trainer_config}
-    config = make.get(base, presets.gsmsdr_trainer_config)()
-    if base in ("plain", "sharp"):
-        config.pipeline.model.degradation = "sharp"
-        set_pose_refinement(config.pipeline.model, "off")  # splatfacto's default
-    config.data = Path(data)
-    config.pipeline.datamanager.data = Path(data)
-    config.output_dir = Path(output_dir)
-    config.vis = "tensorboard"
-    config.steps_per_eval_image = 0
-    config.steps_per_eval_all_images = 0
-    config.pipeline.model.viewer_blur_outputs = False  # evaluation renders rgb only (the metrics use rgb alone)
-    return config
-
-
-def set_pose_refinement(model, views: str) -> None:
-    """Camera optimizer of a GSMSDRModelConfig: "off", or SO3xR3 on the "degraded" or "all" training views."""
-    if views not in ("off", "degraded", "all"):
-        raise ValueError(f"pose refinement must be off, degraded or all, got {views!r}")
-    model.camera_optimizer = dataclasses.replace(model.camera_optimizer, mode="off" if views == "off" else "SO3xR3")
-    if views != "off":
-        model.camera_optimizer_views = views
-
-
-def set_lr_decay(config, group: str, lr_final: float) -> None:
-    """Give the optimizer group ``group`` of a TrainerConfig an exponential decay to ``lr_final`` over its steps
-    (no warm-up)."""
-    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
-
-    if group not in config.optimizers:
-        raise ValueError(f"no optimizer group {group!r}; valid: {', '.join(sorted(config.optimizers))}")
-    config.optimizers[group]["scheduler"] = ExponentialDecaySchedulerConfig(
-        lr_final=lr_final, max_steps=config.max_num_iterations, warmup_steps=0
-    )
-
-
-@dataclass(frozen=True)
-class MethodSpec:
-    """How one suite method differs from its base preset."""
-
-    name: str
-    """Suite method name (``methods:`` of a suite file)."""
-    label: str
-    """Row label in the tables."""
-    base: str
-    """Base preset: plain / sharp (gsmsdr preset with degradation sharp), gsmsdr, gsmsdr-lite."""
-    overrides: Tuple[Tuple[str, Any], ...] = ()
-    """Fields replaced on the preset's ``BlurFieldConfig`` (the field's architecture) or ``DegradationConfig``
-    (everything else), each where it is defined."""
-    sharp_data: bool = False
-    """Train on the sharp twin of the scene (the upper bound) instead of its degraded images."""
-    description: str = ""
-    """One line for humans."""
-    true_records: bool = False
-    """On a scene built from real photos, train on its twin that carries the true degradation records (the scene
-    itself has none, so the dataparser estimates them)."""
-    degraded_poses: bool = False
-    """With ``sharp_data``, on a scene built from real photos: the sharp photos posed and undistorted by the
-    degraded photos' structure-from-motion instead of the sharp twin's own (what a perfect deblurring could reach
-    with those poses and that camera). Elsewhere the same as ``sharp``."""
-    pose_refinement: Optional[str] = None
-    """The camera optimizer: None keeps the base preset's (off, as in splatfacto), "off", "degraded" (the views with
-    a degradation model) or "all" (every training view)."""
-    lr_final: Tuple[Tuple[str, float], ...] = ()
-    """(optimizer group, final rate): the group's rate decays exponentially from the preset's to this one over the
-    run (the suite's schedule scales the decay to its steps)."""
-    model_overrides: Tuple[Tuple[str, Any], ...] = ()
-    """Fields replaced on the preset's ``GSMSDRModelConfig`` itself (the Gaussian model's options, such as
-    ``degraded_densify_grad_scale``); an option it does not have raises ValueError."""
-
-    def make_config(self, data: Path, output_dir: Path):
-        """The TrainerConfig of this method on ``data`` (schedules not yet shortened)."""
-        config = base_config(self.base, data, output_dir)
-        model = config.pipeline.model
-        if self.overrides:
-            model.blur_field, model.degradation_model = apply_overrides(
-                model.blur_field, model.degradation_model, dict(self.overrides)
-            )
-        if self.pose_refinement is not None:
-            set_pose_refinement(model, self.pose_refinement)
-        for group, final in self.lr_final:
-            set_lr_decay(config, group, final)
-        if self.model_overrides:
-            config.pipeline.model = replace_model_options(config.pipeline.model, dict(self.model_overrides))
-        return config
-
-    @property
-    def has_blur_field(self) -> bool:
-        return self.base in ("gsmsdr", "gsmsdr-lite", "gsmsdr-cpu")
-
-    def modules(self) -> Optional[Dict[str, bool]]:
-        """Table 6's check marks (GAKA, SAFM, MCA, RGBD, HPKO) of the gsmsdr-preset blur field, None otherwise."""
-        if self.base in ("plain",):
-            return dict(GAKA=False, SAFM=False, MCA=False, RGBD=False, HPKO=False)
-        if self.base != "gsmsdr":
-            return None
-        from gsmsdr_ns.blur.degradation_config import DegradationConfig
-        from gsmsdr_ns.blur.field import BlurFieldConfig
-
-        mods = apply_overrides(BlurFieldConfig(), DegradationConfig(), dict(self.overrides))[0].modules
-        return dict(GAKA=mods.gaka, SAFM=mods.safm, MCA=mods.mca, RGBD=mods.rgbd, HPKO=mods.hpko)
-
-
-def _check_options(options: Dict[str, Any], *configs) -> None:
-    """Raise ValueError naming every key of ``options`` that is a field of none of the dataclasses ``configs``."""
-    names = {f.name for config in configs for f in dataclasses.fields(config)}
-    unknown = sorted(set(options) - names)
-    if unknown:
-        kinds = " or ".join(type(config).__name__ for config in configs)
-        raise ValueError(f"not an option of {kinds}: {', '.join(unknown)}")
-
-
-def apply_overrides(blur_field, degradation, overrides: Dict[str, Any]):
-    """(blur_field, degradation) with each of ``overrides`` replaced where it is defined: a ``BlurFieldConfig`` field
-    on ``blur_field``, a ``DegradationConfig`` field on ``degradation``. An option of neither raises ValueError."""
-    _check_options(overrides, blur_field, degradation)
-    field_names = {f.name for f in dataclasses.fields(blur_field)}
-    on_field = {k: v for k, v in overrides.items() if k in field_names}
-    on_degradation = {k: v for k, v in overrides.items() if k not in field_names}
-    return dataclasses.replace(blur_field, **on_field), dataclasses.replace(degradation, **on_degradation)
-
-
-def replace_model_options(model, options: Dict[str, Any]):
-    """``model`` (a GSMSDRModelConfig) with each of ``options`` replaced; an option it does not have raises
-    ValueError naming it."""
-    _check_options(options, model)
-    return dataclasses.replace(model, **options)
-
-
-def _method(
-    name: str,
-    label: str,
-    base: str,
-    description: str,
-    sharp_data: bool = False,
-    model_overrides: Tuple[Tuple[str, Any], ...] = (),
-    **options,
-) -> MethodSpec:
-    return MethodSpec(
-        name, label, base, tuple(sorted(options.items())), sharp_data, description, model_overrides=model_overrides
-    )
+from gsmsdr_ns.bench.method_base import (
+    BASES,
+    MethodSpec,
+    apply_overrides,
+    base_config,
+    make_method,
+    set_lr_decay,
+    set_pose_refinement,
+)
 
 
 def _view_kernels_method(sizes: Tuple[int, int, int]) -> MethodSpec:
     """``view-k<K>``: mode view with kernels of ``sizes`` px (HPKO 1/4, 1/2, full resolution; K the last)."""
     slashed = "/".join(str(k) for k in sizes)
-    return _method(
+    return make_method(
         f"view-k{sizes[-1]}",
         f"per-view kernels, kernels {slashed}",
         "gsmsdr",
@@ -191,7 +45,7 @@ def _view_kernels_method(sizes: Tuple[int, int, int]) -> MethodSpec:
 METHODS: Dict[str, MethodSpec] = {
     m.name: m
     for m in (
-        _method("plain", "plain (3DGS)", "plain", "plain Gaussians (degradation sharp) on the degraded images"),
+        make_method("plain", "plain (3DGS)", "plain", "plain Gaussians (degradation sharp) on the degraded images"),
         MethodSpec(
             "plain-poses",
             "plain + pose refinement",
@@ -201,19 +55,21 @@ METHODS: Dict[str, MethodSpec] = {
             "plain Gaussians with nerfstudio's camera optimizer (SO3xR3) on every training view",
             pose_refinement="all",
         ),  # fmt: skip
-        _method("msd-only", "MSD-only", "gsmsdr", "HPKO heads on BAGS' plain CNN (no GAKA/SAFM/MCA)", mode="msd_only"),
-        _method(
+        make_method(
+            "msd-only", "MSD-only", "gsmsdr", "HPKO heads on BAGS' plain CNN (no GAKA/SAFM/MCA)", mode="msd_only"
+        ),
+        make_method(
             "re-only", "RE-only", "gsmsdr", "MAAN features, one full-resolution kernel scale (no HPKO)", mode="re_only"
         ),  # fmt: skip
-        _method("full", "GS-MSDR (full)", "gsmsdr", "the gsmsdr preset: MAAN + HPKO, with per-view kernels"),
-        _method(
+        make_method("full", "GS-MSDR (full)", "gsmsdr", "the gsmsdr preset: MAAN + HPKO, with per-view kernels"),
+        make_method(
             "full-fallback",
             "GS-MSDR (full) + per-image fallback",
             "gsmsdr",
             "full; a view trains plain steps until its blur model explains its photo better than the sharp render",
             fallback=True,
         ),  # fmt: skip
-        _method(
+        make_method(
             "full-fallback-coarse",
             "GS-MSDR (full) + per-image fallback, errors at sigma 1",
             "gsmsdr",
@@ -221,14 +77,14 @@ METHODS: Dict[str, MethodSpec] = {
             fallback=True,
             fallback_sigma=1.0,
         ),
-        _method(
+        make_method(
             "full-anchor",
             "GS-MSDR (full) + sharp anchor 0.25",
             "gsmsdr",
             "full; a quarter of the plain loss on the sharp render beside the blurred render's",
             sharp_anchor_weight=0.25,
         ),
-        _method(
+        make_method(
             "full-lens-early",
             "GS-MSDR (full), thin lens from the field's warm-up",
             "gsmsdr",
@@ -244,14 +100,14 @@ METHODS: Dict[str, MethodSpec] = {
             "full with nerfstudio's camera optimizer (SO3xR3) on the degraded views",
             pose_refinement="degraded",
         ),  # fmt: skip
-        _method(
+        make_method(
             "full-per-pixel",
             "full, features at every pixel",
             "gsmsdr",
             "full with the feature network at every pixel (feature_downsample 1, the paper's field)",
             feature_downsample=1,
         ),  # fmt: skip
-        _method(
+        make_method(
             "full-grid4k",
             "full, feature grid of at most 4096 cells",
             "gsmsdr",
@@ -268,7 +124,7 @@ METHODS: Dict[str, MethodSpec] = {
             "gsmsdr-cpu with nerfstudio's camera optimizer (SO3xR3) on every training view",
             pose_refinement="all",
         ),  # fmt: skip
-        _method(
+        make_method(
             "cpu-shake",
             "gsmsdr-cpu + camera shake paths",
             "gsmsdr-cpu",
@@ -297,14 +153,14 @@ METHODS: Dict[str, MethodSpec] = {
             "gsmsdr-cpu with the rotation paths' and per-view kernels' learning rates decayed 100x over the run",
             lr_final=(("blur_shake", 1e-3), ("blur_view_kernels", 3e-4)),
         ),  # fmt: skip
-        _method(
+        make_method(
             "cpu-shake17",
             "gsmsdr-cpu, 17 shake samples",
             "gsmsdr-cpu",
             "gsmsdr-cpu with the render warped to 17 time samples of each rotation path instead of 9",
             shake_samples=17,
         ),  # fmt: skip
-        _method(
+        make_method(
             "cpu-shake-move",
             "gsmsdr-cpu + translating shake paths",
             "gsmsdr-cpu",
@@ -313,7 +169,7 @@ METHODS: Dict[str, MethodSpec] = {
             shake_translation=True,
             shake_parallax=False,
         ),  # fmt: skip
-        _method(
+        make_method(
             "cpu-shake-move-late",
             "gsmsdr-cpu + translating shake paths from densify end",
             "gsmsdr-cpu",
@@ -323,7 +179,7 @@ METHODS: Dict[str, MethodSpec] = {
             shake_translation_start="densify_end",
             shake_parallax=False,
         ),  # fmt: skip
-        _method(
+        make_method(
             "cpu-shake-parallax",
             "gsmsdr-cpu + parallax-only shake translations",
             "gsmsdr-cpu",
@@ -332,7 +188,7 @@ METHODS: Dict[str, MethodSpec] = {
             shake_translation=True,
             shake_parallax=True,
         ),  # fmt: skip
-        _method(
+        make_method(
             "cpu-path-weighted",
             "gsmsdr-cpu, path in the deconvolved loss",
             "gsmsdr-cpu",
@@ -340,7 +196,7 @@ METHODS: Dict[str, MethodSpec] = {
             "per-view kernels' (gsmsdr-cpu at 8604905)",
             deconvolved_loss_on_shake=True,
         ),  # fmt: skip
-        _method(
+        make_method(
             "cpu-path-weighted-d05",
             "gsmsdr-cpu, path in the deconvolved loss, degraded densification x0.5",
             "gsmsdr-cpu",
@@ -349,7 +205,7 @@ METHODS: Dict[str, MethodSpec] = {
             model_overrides=(("degraded_densify_grad_scale", 0.5),),
             deconvolved_loss_on_shake=True,
         ),  # fmt: skip
-        _method(
+        make_method(
             "cpu-path-weighted-eps04",
             "gsmsdr-cpu, path in the deconvolved loss, eps 0.04",
             "gsmsdr-cpu",
@@ -358,14 +214,14 @@ METHODS: Dict[str, MethodSpec] = {
             deconvolved_loss_eps=0.04,
             deconvolved_loss_on_shake=True,
         ),  # fmt: skip
-        _method(
+        make_method(
             "cpu-paper-loss",
             "gsmsdr-cpu, the paper's loss alone",
             "gsmsdr-cpu",
             "gsmsdr-cpu without the deconvolved residual loss (deconvolved_loss_weight 0)",
             deconvolved_loss_weight=0.0,
         ),  # fmt: skip
-        _method(
+        make_method(
             "cpu-kernels",
             "gsmsdr-cpu, per-view kernels alone",
             "gsmsdr-cpu",
@@ -373,7 +229,7 @@ METHODS: Dict[str, MethodSpec] = {
             render_margin=False,
             camera_shake=False,
         ),  # fmt: skip
-        _method(
+        make_method(
             "full-cells4",
             "full, 4 px feature cells at any size",
             "gsmsdr",
@@ -381,42 +237,42 @@ METHODS: Dict[str, MethodSpec] = {
             "default before the 4096-cell cap)",
             feature_grid_cells=0,
         ),  # fmt: skip
-        _method(
+        make_method(
             "full-uncentred",
             "GS-MSDR (full), kernels not centred",
             "gsmsdr",
             "full without the kernel-centre regulariser (kernel_centre_weight 0)",
             kernel_centre_weight=0.0,
         ),
-        _method(
+        make_method(
             "full-lens-unknown",
             "GS-MSDR (full), thin lens on blur of unknown kind",
             "gsmsdr",
             "full with the thin lens before the field on images whose kind of blur is unknown",
             thin_lens_for_unknown_kind=True,
         ),  # fmt: skip
-        _method(
+        make_method(
             "full-paper-loss",
             "GS-MSDR (full), the paper's loss alone",
             "gsmsdr",
             "full without the deconvolved residual loss (deconvolved_loss_weight 0)",
             deconvolved_loss_weight=0.0,
         ),
-        _method(
+        make_method(
             "full-lens-paper-loss",
             "GS-MSDR (full), no deconvolved loss on the lens",
             "gsmsdr",
             "full without the deconvolved residual loss on images the thin lens blurs (deconvolved_loss_on_lens False)",
             deconvolved_loss_on_lens=False,
         ),
-        _method(
+        make_method(
             "full-margin",
             "GS-MSDR (full), render margin",
             "gsmsdr",
             "full rendering the kernel's half-width beyond every border of a blurred view (render_margin)",
             render_margin=True,
         ),  # fmt: skip
-        _method(
+        make_method(
             "full-shake",
             "GS-MSDR (full), camera shake paths",
             "gsmsdr",
@@ -433,14 +289,14 @@ METHODS: Dict[str, MethodSpec] = {
             "full with the true degradation records of a real-photo scene (elsewhere the same as full)",
             true_records=True,
         ),  # fmt: skip
-        _method(
+        make_method(
             "-view",
             "-view kernels",
             "gsmsdr",
             "full without per-view kernels (the paper's blur field)",
             view_kernels=False,
         ),  # fmt: skip
-        _method(
+        make_method(
             "view",
             "per-view kernels (mode view)",
             "gsmsdr",
@@ -448,12 +304,12 @@ METHODS: Dict[str, MethodSpec] = {
             mode="view",
         ),  # fmt: skip
         *(_view_kernels_method(sizes) for sizes in ((13, 25, 49), (9, 17, 33), (7, 13, 25))),
-        _method("-gaka", "-GAKA", "gsmsdr", "full without Global-Aware Kernel Attention", gaka=False),
-        _method("-safm", "-SAFM", "gsmsdr", "full without the Spatial Adaptive Fusion Module", safm=False),
-        _method("-mca", "-MCA", "gsmsdr", "full without the Multi-modal Context Adapter", mca=False),
-        _method("-rgbd", "-RGBD", "gsmsdr", "full with an RGB-only feature network (no depth input)", rgbd=False),
-        _method("gsmsdr-lite", "gsmsdr-lite", "gsmsdr-lite", "the gsmsdr-lite preset (half-width blur field)"),
-        _method(
+        make_method("-gaka", "-GAKA", "gsmsdr", "full without Global-Aware Kernel Attention", gaka=False),
+        make_method("-safm", "-SAFM", "gsmsdr", "full without the Spatial Adaptive Fusion Module", safm=False),
+        make_method("-mca", "-MCA", "gsmsdr", "full without the Multi-modal Context Adapter", mca=False),
+        make_method("-rgbd", "-RGBD", "gsmsdr", "full with an RGB-only feature network (no depth input)", rgbd=False),
+        make_method("gsmsdr-lite", "gsmsdr-lite", "gsmsdr-lite", "the gsmsdr-lite preset (half-width blur field)"),
+        make_method(
             "gsmsdr-cpu",
             "gsmsdr-cpu",
             "gsmsdr-cpu",
@@ -469,7 +325,7 @@ METHODS: Dict[str, MethodSpec] = {
             "structure-from-motion (real-photo scenes; elsewhere the same as sharp)",
             degraded_poses=True,
         ),  # fmt: skip
-        _method(
+        make_method(
             "sharp",
             "sharp (upper bound)",
             "sharp",
@@ -494,4 +350,6 @@ def method_spec(name: str) -> MethodSpec:
     return METHODS[name]
 
 
-__all__ = ["BASES", "METHODS", "MethodSpec", "TABLE6_METHODS", "TABLE7_METHODS", "base_config", "method_spec"]
+# BASES, MethodSpec, apply_overrides, base_config, set_*: defined in method_base, importable from here too
+__all__ = ["BASES", "METHODS", "MethodSpec", "TABLE6_METHODS", "TABLE7_METHODS", "apply_overrides", "base_config",
+           "method_spec", "set_lr_decay", "set_pose_refinement"]  # fmt: skip

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Dict, Optional
 
-from gsmsdr_ns.bench.methods import MethodSpec
+from gsmsdr_ns.bench.method_base import MethodSpec
 from gsmsdr_ns.bench.real_scenes import RealSceneSpec
 from gsmsdr_ns.bench.scenes import SceneSpec
 
