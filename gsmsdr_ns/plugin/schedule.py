@@ -45,7 +45,7 @@ class TrainingSchedule:
     densify_grad_thresh: float = 0.002
     """Higher than splatfacto's 0.0008 to keep the Gaussian count CPU-sized."""
     lr_schedulers: Tuple[str, ...] = ("means", "camera_opt", "bilateral_grid", "blur_shake", "blur_view_kernels")
-    """Optimizer groups whose learning-rate scheduler is scaled to ``steps`` (warm-up capped at a tenth of them);
+    """Optimizer groups whose learning-rate scheduler is scaled to ``steps`` (warm-up capped at a tenth of the decay);
     groups without a scheduler keep their constant rate."""
     lr_decay_fraction: float = 1.0
     """The scaled schedulers reach their final rate at this fraction of the steps and hold it after."""
@@ -119,7 +119,7 @@ class TrainingSchedule:
             if scheduler is not None:
                 # nerfstudio's exponential decay holds lr_final after max_steps
                 scheduler.max_steps = decay_steps
-                scheduler.warmup_steps = min(scheduler.warmup_steps, steps // 10, decay_steps // 10)
+                scheduler.warmup_steps = min(scheduler.warmup_steps, decay_steps // 10)  # decay_steps <= steps
 
 
 __all__ = ["SPLATFACTO_STEPS", "TrainingSchedule"]
