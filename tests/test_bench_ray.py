@@ -6,6 +6,7 @@ worker process is killed mid-run (the run is retried once and gets the same numb
 from __future__ import annotations
 
 import io
+import os
 import re
 import signal
 import textwrap
@@ -157,6 +158,17 @@ def test_run_order_ends_the_runs_soonest() -> None:
     assert sorted(order) == list(range(5))
     assert makespan([costs[i] for i in order], 2) == 151  # {87, 61} and {66, 44, 41}: the best split
     assert makespan(costs, 1) == sum(costs) and run_order([3.0], 4) == [0]
+
+
+def test_a_local_instance_runs_its_tasks_at_the_drivers_priority(local_ray) -> None:
+    """Ray starts workers at nice +15 unless told otherwise; a local instance's runs must not yield to every other
+    busy process on the machine."""
+
+    @ray.remote(num_cpus=1)
+    def niceness() -> int:
+        return os.nice(0)
+
+    assert ray.get(niceness.remote(), timeout=600) == os.nice(0)
 
 
 def test_ray_addresses() -> None:

@@ -50,6 +50,10 @@ PASSED_ENV = (
 LOCAL_OBJECT_STORE_BYTES = 512 * 2**20
 """Object store of a local instance: tasks pass run settings and records (kilobytes), not images."""
 
+LOCAL_SYSTEM_CONFIG = {"worker_niceness": 0}
+"""A local instance's workers train at the driver's priority: at Ray's default (nice +15) any other busy process on
+the machine starves them (two 1-thread trainings beside a 2-CPU instance held its 12-step runs past 900 s)."""
+
 PROGRESS_SECONDS = 0.5
 """A task reports its step count at most this often."""
 
@@ -97,7 +101,8 @@ def connect(address: str) -> bool:
                                    runtime_env={"env_vars": env} if env else None)  # fmt: skip
     try:
         if target is None:
-            ray.init(num_cpus=cpus, include_dashboard=False, object_store_memory=LOCAL_OBJECT_STORE_BYTES, **options)
+            ray.init(num_cpus=cpus, include_dashboard=False, object_store_memory=LOCAL_OBJECT_STORE_BYTES,
+                     _system_config=LOCAL_SYSTEM_CONFIG, **options)  # fmt: skip
         else:
             ray.init(address=target, **options)
     except ConnectionError as e:
