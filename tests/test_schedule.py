@@ -4,6 +4,7 @@ and the demo's config is exactly the demo preset applied to the gsmsdr-lite pres
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -61,9 +62,9 @@ def test_demo_preset_values(tmp_path: Path) -> None:
 def test_cpu_preset_is_mode_view_on_the_real_size_suites_schedule(tmp_path: Path) -> None:
     """gsmsdr-cpu = the gsmsdr preset with one kernel per view (9 / 17 / 33 px) after a camera path (with the
     render margin; rotations, and translations relative to the median depth), trained on the real-size suite's
-    schedule at 6000 steps; so the suite's `gsmsdr-cpu` row at those steps trains the preset as ns-train does
-    (`view-k33`'s field, `cpu-shake-parallax`'s model)."""
-    assert CPU_SCHEDULE.steps == 6000
+    schedule at 6000 steps with an SH degree every 1000 steps; so a suite with that schedule trains the preset as
+    ns-train does in its `gsmsdr-cpu` rows (`view-k33`'s field, `cpu-shake-parallax`'s model)."""
+    assert CPU_SCHEDULE.steps == 6000 and CPU_SCHEDULE.sh_degree_fraction * CPU_SCHEDULE.steps == 1000
     from gsmsdr_ns.bench.suite_config import find_suite_file, load_suite
 
     config = gsmsdr_cpu_trainer_config()
@@ -75,16 +76,17 @@ def test_cpu_preset_is_mode_view_on_the_real_size_suites_schedule(tmp_path: Path
     expected.pipeline.model.blur_field = field
     expected.pipeline.model.degradation_model = degradation
     suite = load_suite(find_suite_file("real-size"))
-    suite.schedule_for(CPU_SCHEDULE.steps).apply(expected)
+    schedule = dataclasses.replace(suite.schedule_for(CPU_SCHEDULE.steps), sh_degree_fraction=1 / 6)
+    schedule.apply(expected)
     assert _settings(config) == _settings(expected)
     assert repr(config.pipeline.model) == repr(expected.pipeline.model)
     as_bench = method_spec("gsmsdr-cpu").make_config(tmp_path, tmp_path / "out")
-    suite.schedule_for(CPU_SCHEDULE.steps).apply(as_bench)
+    schedule.apply(as_bench)
     assert _settings(as_bench) == _settings(config) and as_bench.pipeline.model.blur_field == field
     view = method_spec("view-k33").make_config(tmp_path, tmp_path / "out")
     assert view.pipeline.model.blur_field == field
     shake = method_spec("cpu-shake-parallax").make_config(tmp_path, tmp_path / "out")
-    suite.schedule_for(CPU_SCHEDULE.steps).apply(shake)
+    schedule.apply(shake)
     assert repr(as_bench.pipeline.model) == repr(shake.pipeline.model)
 
 
