@@ -24,6 +24,7 @@ ADDED_AT_NEUTRAL: Dict[str, Any] = {
     "deconvolved_loss_on_shake": False,
     "shake_translation_start": "warmup",
     "shake_parallax": False,
+    "shake_occlusion": False,
 }
 """Config fields added after records were made, each with the value that trains exactly as before: left out of
 :func:`preset_fingerprint` at that value, so adding them does not rerun every record (another value changes it)."""
@@ -34,7 +35,7 @@ NETWORK_ONLY = frozenset({"feature_grid_cells"})
 mode ``view`` field (no network) at any value."""
 
 
-SHAKE_ONLY = frozenset({"deconvolved_loss_on_shake", "shake_translation_start", "shake_parallax"})
+SHAKE_ONLY = frozenset({"deconvolved_loss_on_shake", "shake_translation_start", "shake_parallax", "shake_occlusion"})
 """Fields of :data:`ADDED_AT_NEUTRAL` read only with camera shake paths: left out of the fingerprint of a model
 without them at any value."""
 

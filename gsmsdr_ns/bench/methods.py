@@ -189,6 +189,16 @@ METHODS: Dict[str, MethodSpec] = {
             shake_parallax=True,
         ),  # fmt: skip
         make_method(
+            "cpu-shake-occlusion",
+            "gsmsdr-cpu + occluding shake translations",
+            "gsmsdr-cpu",
+            "cpu-shake-parallax whose render is moved to each time sample by forward splatting in depth order (a near "
+            "surface smears outward over the background) instead of the backward warp",
+            shake_translation=True,
+            shake_parallax=True,
+            shake_occlusion=True,
+        ),  # fmt: skip
+        make_method(
             "cpu-path-weighted",
             "gsmsdr-cpu, path in the deconvolved loss",
             "gsmsdr-cpu",

@@ -91,6 +91,11 @@ class DegradationConfig:
     far as the translation does, so the rotation path carries the blur at that depth and the translation only
     what differs with depth (near points one way, far points the other). False: both paths move every pixel and
     trade off against each other through the render's depth. On in ``gsmsdr-cpu``."""
+    shake_occlusion: bool = False
+    """With ``shake_translation``, move the render to each time sample by forward splatting in depth order (the
+    nearest point landing on a pixel shows; :func:`~gsmsdr_ns.blur.shake.apply_camera_shake_occluding`), so a near
+    surface smears outward over the background as in a photo; what it uncovers is read by the backward warp. False:
+    every pixel reads the render along its own depth's motion (the backward warp alone)."""
     render_margin: bool = False
     """Render the current kernel's half-width beyond every border of a blurred image and crop after blurring: a
     photo's border pixels are blurred with what lay just outside the frame, which replicate padding cannot know.

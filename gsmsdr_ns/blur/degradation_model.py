@@ -160,7 +160,11 @@ class DegradationModel(nn.Module):
         self.camera_shake: Optional[CameraShake] = None
         if self.blur_field is not None and config.camera_shake and any(p.motion for p in self.profiles):
             self.camera_shake = CameraShake(
-                num_views, config.shake_samples, translation=config.shake_translation, parallax=config.shake_parallax
+                num_views,
+                config.shake_samples,
+                translation=config.shake_translation,
+                parallax=config.shake_parallax,
+                occlusion=config.shake_occlusion,
             )
         mixres = [p for p in self.profiles if p.needs_resolution_model]
         if mixres:

@@ -17,7 +17,7 @@ one module (:class:`CameraShake`) holding the coefficients.
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+from typing import Callable, Optional, Tuple
 
 import torch
 from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
@@ -31,12 +31,15 @@ from gsmsdr_ns.ops.splat import splat_bilinear
 __all__ = [
     "CameraShake",
     "apply_camera_shake",
+    "apply_camera_shake_occluding",
     "apply_camera_shake_with_depth",
     "parallax_rotvecs",
     "rotation_homographies",
     "shake_basis",
     "shake_mean_kernel",
     "shake_sample_grid",
+    "shake_splat_positions",
+    "visible_sample_depths",
 ]
 
 RADIANS_PER_UNIT = 0.01
@@ -166,20 +169,22 @@ def shake_sample_grid(K: Tensor, rotvecs: Tensor, translations: Tensor, depth: T
         K: [3, 3] pinhole intrinsics, principal point in the pixel-edge convention.
         rotvecs: [T, 3] rotation vectors (radians).
         translations: [T, 3] camera translations (scene units, camera frame).
-        depth: [H, W] depth of the render along the optical axis (scene units, > 0).
+        depth: [H, W] depth of the render along the optical axis (scene units, > 0), or [T, H, W] a depth per time
+            sample (what that sample's camera sees at each pixel, :func:`visible_sample_depths`).
     Returns:
         [T, H, W, 2] sampling grid for ``torch.nn.functional.grid_sample`` (x, y in [-1, 1], ``align_corners=True``).
     """
-    H, W = depth.shape
+    H, W = depth.shape[-2:]
     dtype = K.dtype
     K_index = _index_intrinsics(K)
     ys, xs = torch.meshgrid(
         torch.arange(H, dtype=dtype, device=K.device), torch.arange(W, dtype=dtype, device=K.device), indexing="ij"
     )
     pixels = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1)  # [H, W, 3]
-    points = (pixels @ torch.linalg.inv(K_index).T) * depth.to(dtype)[..., None]  # [H, W, 3]
+    points = (pixels @ torch.linalg.inv(K_index).T) * depth.to(dtype)[..., None]  # [H, W, 3] or [T, H, W, 3]
     R_T = axis_angle_to_rotation_matrix(rotvecs.to(dtype)).transpose(-1, -2)  # [T, 3, 3]
-    moved = torch.einsum("tij,hwj->thwi", R_T, points) + translations.to(dtype)[:, None, None, :]
+    points = points.expand(rotvecs.shape[0], H, W, 3)  # [T, H, W, 3]
+    moved = torch.einsum("tij,thwj->thwi", R_T, points) + translations.to(dtype)[:, None, None, :]
     projected = moved @ K_index.T  # [T, H, W, 3]
     uv = projected[..., :2] / projected[..., 2:].clamp_min(1e-6)
     scale = torch.tensor([2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)], dtype=dtype, device=K.device)
@@ -203,6 +208,88 @@ def parallax_rotvecs(translations: Tensor, reference_depth: Tensor) -> Tensor:
     inverse = 1.0 / reference_depth.to(translations.dtype)
     zero = torch.zeros_like(translations[:, 0])
     return torch.stack([-translations[:, 1] * inverse, translations[:, 0] * inverse, zero], dim=1)
+
+
+def shake_splat_positions(K: Tensor, rotvecs: Tensor, translations: Tensor, depth: Tensor) -> Tuple[Tensor, Tensor]:
+    """Where each pixel of the sharp render lands at each time sample, and at what depth: the forward counterpart of
+    :func:`shake_sample_grid` (the same camera motion).
+
+    The point seen at pixel ``p`` lies at ``X = z(p) K^-1 p``; the camera of time sample ``t``, turned by ``R_t`` and
+    moved by ``c_t`` (as in :func:`shake_sample_grid`), sees it at ``R_t (X - c_t)``.
+
+    Args:
+        K: [3, 3] pinhole intrinsics, principal point in the pixel-edge convention.
+        rotvecs: [T, 3] rotation vectors (radians).
+        translations: [T, 3] camera translations (scene units, camera frame).
+        depth: [H, W] depth of the render along the optical axis (scene units, > 0).
+    Returns:
+        positions [T, H, W, 2] (x, y pixel indices, centres at integers) and depths [T, H, W] in each sample's camera.
+    """
+    H, W = depth.shape
+    dtype = K.dtype
+    K_index = _index_intrinsics(K)
+    ys, xs = torch.meshgrid(
+        torch.arange(H, dtype=dtype, device=K.device), torch.arange(W, dtype=dtype, device=K.device), indexing="ij"
+    )
+    pixels = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1)  # [H, W, 3]
+    points = (pixels @ torch.linalg.inv(K_index).T) * depth.to(dtype)[..., None]  # [H, W, 3]
+    KR = K_index @ axis_angle_to_rotation_matrix(rotvecs.to(dtype))  # [T, 3, 3]
+    offsets = torch.einsum("tij,tj->ti", KR, translations.to(dtype))  # [T, 3]: K R_t c_t
+    projected = torch.einsum("tij,hwj->thwi", KR, points) - offsets[:, None, None, :]  # [T, H, W, 3]
+    z = projected[..., 2].clamp_min(1e-6)
+    return projected[..., :2] / z[..., None], z
+
+
+def visible_sample_depths(K: Tensor, rotvecs: Tensor, translations: Tensor, depth: Tensor) -> Tensor:
+    """The render's depth as each time sample's camera sees it: every pixel's point projected into that camera
+    (:func:`shake_splat_positions`) and, of the points landing on a pixel, the nearest kept (a z-buffer). Not
+    differentiable.
+
+    A pixel no point reaches (background the render's near surfaces hide, or a gap where the view stretches) keeps
+    the render's own depth there.
+
+    Args:
+        K: [3, 3] pinhole intrinsics, principal point in the pixel-edge convention.
+        rotvecs: [T, 3] rotation vectors (radians).
+        translations: [T, 3] camera translations (scene units, camera frame).
+        depth: [H, W] depth of the render (scene units, > 0).
+    Returns:
+        [T, H, W] depths (scene units, > 0).
+    """
+    with torch.no_grad():
+        H, W = depth.shape
+        positions, sample_depth = shake_splat_positions(K, rotvecs.detach(), translations.detach(), depth.detach())
+        T = positions.shape[0]
+        x, y = positions[..., 0].round(), positions[..., 1].round()
+        inside = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
+        base = torch.arange(T, device=depth.device)[:, None, None] * (H * W)
+        index = (base + y.clamp(0, H - 1).long() * W + x.clamp(0, W - 1).long())[inside]
+        visible = depth.new_full((T * H * W,), float("inf"))
+        visible.scatter_reduce_(0, index, sample_depth.to(depth.dtype)[inside], reduce="amin", include_self=True)
+        visible = visible.reshape(T, H, W)
+        return torch.where(torch.isinf(visible), depth.detach().expand_as(visible), visible)
+
+
+def apply_camera_shake_occluding(
+    image: Tensor, K: Tensor, rotvecs: Tensor, translations: Tensor, depth: Tensor, linear_light: bool = True
+) -> Tensor:
+    """Average of the render moved to each time sample with occlusion: each sample's pixel reads the render along
+    the depth that sample's camera sees there (:func:`visible_sample_depths`), not the render's depth at the same
+    pixel. A near surface then smears outward over the background behind it, as in a photo, where reading by the
+    render's own depth moves every pixel by its own depth and erodes the near surface instead.
+
+    Args:
+        image: [1, C, H, W]; sRGB-encoded in [0, 1] when ``linear_light``.
+        K: [3, 3] pinhole intrinsics, principal point in the pixel-edge convention.
+        rotvecs: [T, 3] rotation vectors (radians).
+        translations: [T, 3] camera translations (scene units, camera frame).
+        depth: [H, W] the render's depth (scene units, > 0; not differentiated through).
+        linear_light: average linear light.
+    Returns:
+        [1, C, H, W].
+    """
+    visible = visible_sample_depths(K, rotvecs, translations, depth)
+    return apply_camera_shake_with_depth(image, shake_sample_grid(K, rotvecs, translations, visible), linear_light)
 
 
 def apply_camera_shake_with_depth(image: Tensor, grid: Tensor, linear_light: bool = True) -> Tensor:
@@ -238,6 +325,8 @@ class CameraShake(nn.Module):
             on the render's depth, which :meth:`forward` needs.
         parallax: the translations move the image relative to each render's median depth only
             (:func:`parallax_rotvecs` offsets the rotations), so the rotation path carries the blur at that depth.
+        occlusion: with ``translation``, each time sample reads the render along the depth its own camera sees
+            (:func:`apply_camera_shake_occluding`) instead of the render's depth at the same pixel.
     """
 
     basis_through_pose: Tensor  # buffers (register_buffer in __init__)
@@ -251,9 +340,11 @@ class CameraShake(nn.Module):
         seed: int = 0,
         translation: bool = False,
         parallax: bool = False,
+        occlusion: bool = False,
     ) -> None:
         super().__init__()
         self.parallax = bool(parallax)
+        self.occlusion = bool(occlusion)
         if num_views < 1:
             raise ValueError(f"num_views must be >= 1, got {num_views}")
         self.num_samples = int(num_samples)
@@ -307,5 +398,7 @@ class CameraShake(nn.Module):
         translations = self.translations(view_ids, centred)
         if self.parallax:
             rotvecs = rotvecs + parallax_rotvecs(translations, depth.median())
+        if self.occlusion:
+            return apply_camera_shake_occluding(image, K, rotvecs, translations, depth, linear_light)
         grid = shake_sample_grid(K, rotvecs, translations, depth)
         return apply_camera_shake_with_depth(image, grid, linear_light)

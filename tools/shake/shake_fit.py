@@ -19,6 +19,8 @@ and compared with the photo (PSNR in sRGB over the view minus a margin the shake
   rotation path at rest), each pixel moved by the view's depth (:func:`gsmsdr_ns.blur.shake.shake_sample_grid`,
   what ``shake_translation`` learns when the depth is right);
 * ``6-DoF``: the true rotations and translations, each pixel moved by the view's depth.
+* ``6-DoF occluding``: the same, each time sample reading the sharp view along the depth its own camera sees
+  (:func:`gsmsdr_ns.blur.shake.apply_camera_shake_occluding`, what ``shake_occlusion`` models).
 
 What the best fit of a model leaves is what training with that model cannot explain however well it learns. The
 fitted columns are local optima of L-BFGS from the starts named above: approximate ceilings, which can move by a
@@ -40,6 +42,7 @@ from torch import Tensor
 
 from gsmsdr_ns.blur.shake import (
     apply_camera_shake,
+    apply_camera_shake_occluding,
     apply_camera_shake_with_depth,
     rotation_homographies,
     shake_sample_grid,
@@ -47,7 +50,7 @@ from gsmsdr_ns.blur.shake import (
 from gsmsdr_ns.io.images import read_image_float
 from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels
 
-MODELS = ("none", "kernel", "rotation", "path", "path + kernel", "moving path", "6-DoF")
+MODELS = ("none", "kernel", "rotation", "path", "path + kernel", "moving path", "6-DoF", "6-DoF occluding")
 """Columns of the table, in order."""
 
 
@@ -128,9 +131,10 @@ def _minimise(params: List[Tensor], loss, iters: int) -> None:
 
 
 def view_fits(sharp: Tensor, photo: Tensor, K: Tensor, record: Dict, depth: Tensor, kernel_size: int,
-              path_samples: int) -> Dict[str, float]:  # fmt: skip
-    """PSNR of each model of :data:`MODELS` for one view: ``sharp`` and ``photo`` [1, 3, H, W] sRGB, ``K`` [3, 3],
-    ``record`` the view's motion record (camera-to-reference ``rotvecs`` / ``translations``), ``depth`` [H, W]."""
+              path_samples: int, models: Tuple[str, ...] = MODELS) -> Dict[str, float]:  # fmt: skip
+    """PSNR of each of ``models`` (columns of :data:`MODELS`) for one view: ``sharp`` and ``photo`` [1, 3, H, W]
+    sRGB, ``K`` [3, 3], ``record`` the view's motion record (camera-to-reference ``rotvecs`` / ``translations``),
+    ``depth`` [H, W]."""
     margin = int(np.ceil(float(record.get("max_displacement_px", record["blur_px"])))) + 2
     src, tgt = rgb_to_linear_rgb(sharp), rgb_to_linear_rgb(photo)
     rotvecs = -torch.tensor(record["rotvecs"], dtype=sharp.dtype)  # camera-to-reference -> the view's rotation
@@ -139,20 +143,30 @@ def view_fits(sharp: Tensor, photo: Tensor, K: Tensor, record: Dict, depth: Tens
     def shown(linear: Tensor) -> Tensor:
         return linear_rgb_to_rgb(linear.clamp_min(0.0)).clamp(0.0, 1.0)
 
-    pick = torch.linspace(0, rotvecs.shape[0] - 1, path_samples).round().long()
-    path = fit_rotation_path(src, tgt, K, rotvecs[pick], margin)
-    along_path = rotation_blur(src, K, path)
-    return {
-        "none": psnr(sharp, photo, margin),
-        "kernel": psnr(shown(fit_kernel(src, tgt, kernel_size, margin)), photo, margin),
-        "rotation": psnr(shown(rotation_blur(src, K, rotvecs)), photo, margin),
-        "path": psnr(shown(along_path), photo, margin),
-        "path + kernel": psnr(shown(fit_kernel(along_path, tgt, kernel_size, margin)), photo, margin),
-        "moving path": psnr(
-            shown(depth_blur(src, K, *fit_moving_path(src, tgt, K, path, depth, margin), depth)), photo, margin
-        ),
-        "6-DoF": psnr(shown(depth_blur(src, K, rotvecs, translations, depth)), photo, margin),
+    cache: Dict[str, Tensor] = {}
+
+    def along_path() -> Tensor:  # the fitted rotation path's blur, shared by three columns
+        if "path" not in cache:
+            pick = torch.linspace(0, rotvecs.shape[0] - 1, path_samples).round().long()
+            cache["rotvecs"] = fit_rotation_path(src, tgt, K, rotvecs[pick], margin)
+            cache["path"] = rotation_blur(src, K, cache["rotvecs"])
+        return cache["path"]
+
+    def moving_path() -> Tensor:
+        along_path()
+        return depth_blur(src, K, *fit_moving_path(src, tgt, K, cache["rotvecs"], depth, margin), depth)
+
+    blurred = {
+        "none": lambda: src,
+        "kernel": lambda: fit_kernel(src, tgt, kernel_size, margin),
+        "rotation": lambda: rotation_blur(src, K, rotvecs),
+        "path": along_path,
+        "path + kernel": lambda: fit_kernel(along_path(), tgt, kernel_size, margin),
+        "moving path": moving_path,
+        "6-DoF": lambda: depth_blur(src, K, rotvecs, translations, depth),
+        "6-DoF occluding": lambda: apply_camera_shake_occluding(src, K, rotvecs, translations, depth, False),
     }
+    return {m: psnr(shown(blurred[m]()), photo, margin) for m in models}
 
 
 def _image(path: Path) -> Tensor:
@@ -167,6 +181,8 @@ class ShakeFit:
     """The same scene rendered sharp (its images/ hold every view)."""
     views: int = 0
     """Shaken training views to fit (0: all)."""
+    models: Tuple[str, ...] = MODELS
+    """Models to evaluate (a subset of the columns; the fitted ones take minutes per view)."""
     kernel_size: int = 33
     """Side of the fitted kernels in pixels (gsmsdr-cpu's full-resolution size)."""
     path_samples: int = 9
@@ -184,18 +200,21 @@ class ShakeFit:
         names = names[: self.views] if self.views > 0 else names
         print(f"{self.data} against {self.sharp}: {len(names)} views, {self.kernel_size} px kernels, "
               f"{self.path_samples}-sample paths; PSNR (dB) of each model's best fit to the shaken photo")  # fmt: skip
-        print("| view | blur px | " + " | ".join(MODELS) + " |")
-        print("| --- | ---: | " + " | ".join("---:" for _ in MODELS) + " |")
+        unknown = sorted(set(self.models) - set(MODELS))
+        if unknown:
+            raise SystemExit(f"--models: unknown {unknown}; choose from {list(MODELS)}")
+        print("| view | blur px | " + " | ".join(self.models) + " |")
+        print("| --- | ---: | " + " | ".join("---:" for _ in self.models) + " |")
         rows = []
         for name in names:
             record = records[name]["effects"]["motion"]
             depth = torch.from_numpy(np.load(self.data / "depth" / f"{Path(name).stem}.npy").astype(np.float32))
             fits = view_fits(_image(self.sharp / "images" / name), _image(self.data / "images" / name), K, record,
-                             depth, self.kernel_size, self.path_samples)  # fmt: skip
+                             depth, self.kernel_size, self.path_samples, self.models)  # fmt: skip
             rows.append(fits)
-            cells = " | ".join(f"{fits[m]:.2f}" for m in MODELS)
+            cells = " | ".join(f"{fits[m]:.2f}" for m in self.models)
             print(f"| {name} | {record['blur_px']:.1f} | {cells} |", flush=True)
-        means = " | ".join(f"{np.mean([r[m] for r in rows]):.2f}" for m in MODELS)
+        means = " | ".join(f"{np.mean([r[m] for r in rows]):.2f}" for m in self.models)
         print(f"| mean | | {means} |")
 
 
