@@ -14,12 +14,15 @@ import torch.nn.functional as F
 from gsmsdr_ns.blur.shake import (
     CameraShake,
     apply_camera_shake,
+    apply_camera_shake_occluding,
     apply_camera_shake_with_depth,
     parallax_rotvecs,
     rotation_homographies,
     shake_basis,
     shake_mean_kernel,
     shake_sample_grid,
+    shake_splat_positions,
+    visible_sample_depths,
 )
 
 K = torch.tensor([[60.0, 0.0, 32.0], [0.0, 60.0, 24.0], [0.0, 0.0, 1.0]])  # 64 x 48, principal point at the centre
@@ -251,3 +254,100 @@ def test_the_path_kernel_of_a_wide_shake_is_clamped_to_its_window():
     kernel = shake_mean_kernel(K, rotvecs, 48, 64, 9)[0]
     assert float(kernel.sum()) == pytest.approx(1.0, abs=1e-5)
     assert float(kernel[0].sum() + kernel[-1].sum()) > 0.3 and bool(torch.isfinite(kernel).all())
+
+
+def near_square_over_background():
+    """A 64 x 24 view: a white square of columns 24-39 at depth 2 in front of a textured wall at depth 10, and a
+    camera moving sideways so that the square shifts 0 / +-5 / +-10 px and the wall 0 / +-1 / +-2 px (whole pixels,
+    so every warp is exact) -> (image, K, translations, depth, the average of the five views composited with the
+    square in front)."""
+    height, width = 24, 64
+    K_view = torch.tensor([[50.0, 0.0, 32.0], [0.0, 50.0, 12.0], [0.0, 0.0, 1.0]])
+    u = torch.arange(width, dtype=torch.float32)
+
+    def wall(x: torch.Tensor) -> torch.Tensor:
+        return 0.5 + 0.4 * torch.sin(x / 3.0)
+
+    square = (u >= 24) & (u < 40)
+    depth = torch.where(square, 2.0, 10.0).expand(height, width).clone()
+    image = torch.where(square, torch.ones(width), wall(u)).expand(1, 3, height, width).clone()
+    steps = torch.tensor([-2.0, -1.0, 0.0, 1.0, 2.0])
+    translations = torch.stack([0.2 * steps, torch.zeros(5), torch.zeros(5)], dim=1)
+    views = []
+    for c in (0.2 * steps).tolist():  # the camera moved by c sees depth z shifted by -f c / z
+        seen_square = (u + 25.0 * c >= 24) & (u + 25.0 * c < 40)
+        views.append(torch.where(seen_square, torch.ones(width), wall(u + 5.0 * c)))
+    return image, K_view, translations, depth, torch.stack(views).mean(dim=0)
+
+
+def test_forward_positions_invert_the_backward_grid():
+    """A pixel's point projected into a time sample's camera (:func:`shake_splat_positions`), read back by that
+    sample's grid at its depth there, lands on the pixel it came from: the two warps are one camera motion."""
+    depth = 1.0 + torch.rand(48, 64, generator=torch.Generator().manual_seed(1)) * 3.0
+    rotvecs = torch.tensor([[0.01, -0.02, 0.015], [-0.01, 0.005, 0.0]])
+    translations = torch.tensor([[0.03, -0.02, 0.01], [-0.01, 0.02, -0.02]])
+    positions, sample_depth = shake_splat_positions(K, rotvecs, translations, depth)
+    assert positions.shape == (2, 48, 64, 2) and sample_depth.shape == (2, 48, 64)
+    assert not torch.allclose(positions[0], positions[1])
+    for t in range(2):
+        p = positions[t, 20, 30]
+        # the grid of a view whose every pixel lies at the point's depth in sample t, read at p (bilinear: the map is
+        # smooth at one depth)
+        at_point = torch.full((1, 48, 64), float(sample_depth[t, 20, 30]))
+        grid_t = shake_sample_grid(K, rotvecs[t : t + 1], translations[t : t + 1], at_point)
+        sampled = F.grid_sample(
+            grid_t.permute(0, 3, 1, 2),
+            torch.stack([p[0] / 63 * 2 - 1, p[1] / 47 * 2 - 1]).view(1, 1, 1, 2),
+            align_corners=True,
+        )
+        back = (sampled.view(2) + 1.0) * torch.tensor([63.0, 47.0]) / 2.0
+        assert torch.allclose(back, torch.tensor([30.0, 20.0]), atol=0.05), (t, back)
+
+
+def test_visible_depths_see_the_near_square_where_it_moved():
+    """Each time sample's z-buffer holds the square's depth where the square moved to (over the wall) and the
+    wall's where nothing nearer landed; a still camera sees the render's own depth."""
+    _, K_view, translations, depth, _ = near_square_over_background()
+    still = visible_sample_depths(K_view, torch.zeros(5, 3), torch.zeros(5, 3), depth)
+    assert torch.equal(still, depth.expand(5, 24, 64))
+    visible = visible_sample_depths(K_view, torch.zeros(5, 3), translations, depth)
+    # sample 0: c = -0.4, the square shifted +10 px to columns 34-49
+    assert torch.all(visible[0, :, 34:50] == 2.0) and torch.all(visible[0, :, 52:60] == 10.0)
+    assert torch.all(visible[4, :, 14:30] == 2.0) and torch.all(visible[4, :, 4:12] == 10.0)
+
+
+def test_the_occluding_warp_smears_a_near_surface_over_the_background_as_a_camera_does():
+    """Against the five views composited with the square in front, the occluding warp reproduces the bands where the
+    square smears over the wall (the backward warp erodes the square there instead) and halves the error overall;
+    what it cannot know is only the wall the square hid."""
+    image, K_view, translations, depth, truth = near_square_over_background()
+    occluding = apply_camera_shake_occluding(image, K_view, torch.zeros(5, 3), translations, depth, False)[0, 0, 12]
+    grid = shake_sample_grid(K_view, torch.zeros(5, 3), translations, depth)
+    backward = apply_camera_shake_with_depth(image, grid, linear_light=False)[0, 0, 12]
+    outward = torch.cat([torch.arange(14, 24), torch.arange(40, 50)])  # wall pixels the moving square covers
+    assert torch.allclose(occluding[outward], truth[outward], atol=1e-4)
+    assert (backward[outward] - truth[outward]).abs().max() > 0.1
+    inner = slice(4, -4)
+    assert (occluding - truth)[inner].abs().mean() < 0.6 * (backward - truth)[inner].abs().mean()
+
+
+def test_the_occluding_warp_is_the_rotation_warp_without_translation_and_passes_gradients():
+    """Without translation every depth moves alike, so the occluding warp equals the homography warp; with it, the
+    path's translations and the image get finite gradients."""
+    image = textured(4)
+    depth = 0.5 + torch.rand(48, 64, generator=torch.Generator().manual_seed(2)) * 4.0
+    rotvecs = torch.tensor([[0.01, -0.02, 0.03], [0.0, 0.0, 0.0], [-0.02, 0.01, -0.01]])
+    occluding = apply_camera_shake_occluding(image, K, rotvecs, torch.zeros(3, 3), depth)
+    assert torch.allclose(occluding, apply_camera_shake(image, rotation_homographies(K, rotvecs)), atol=1e-4)
+    model = CameraShake(1, num_samples=5, seed=1, translation=True, parallax=True, occlusion=True)
+    with torch.no_grad():
+        model.translation_coefficients.fill_(1.0)
+    image.requires_grad_(True)
+    out = model(image, K, torch.tensor([0]), centred=True, depth=depth)
+    ((out - textured(5)) ** 2).mean().backward()
+    assert model.translation_coefficients.grad is not None and image.grad is not None
+    assert (
+        torch.isfinite(model.translation_coefficients.grad).all()
+        and model.translation_coefficients.grad.abs().sum() > 0
+    )
+    assert torch.isfinite(image.grad).all()

@@ -27,6 +27,7 @@ def test_models_fit_a_shaken_photo_in_the_expected_order(tmp_path: Path, capsys)
     depth = torch.from_numpy(np.load(shaken / "depth" / f"{Path(name).stem}.npy").astype(np.float32))
     fits = view_fits(_image(sharp / "images" / name), _image(shaken / "images" / name), K, record, depth, 9, 9)
     assert fits["6-DoF"] > 30.0 and fits["6-DoF"] > fits["none"] + 8.0, fits
+    assert fits["6-DoF occluding"] > fits["none"] + 8.0, fits
     assert fits["path"] >= fits["rotation"] - 0.05, fits
     assert fits["moving path"] >= fits["path"] - 0.05, fits  # the moving path starts from the rotation path
     assert all(fits[m] > fits["none"] for m in ("kernel", "rotation", "path", "path + kernel", "moving path")), fits
@@ -34,3 +35,6 @@ def test_models_fit_a_shaken_photo_in_the_expected_order(tmp_path: Path, capsys)
     ShakeFit(data=shaken, sharp=sharp, views=1, kernel_size=9).main()
     table = capsys.readouterr().out
     assert f"| {name} |" in table and "| mean |" in table
+    ShakeFit(data=shaken, sharp=sharp, views=1, models=("none", "6-DoF occluding")).main()
+    header = capsys.readouterr().out.splitlines()[1]
+    assert header == "| view | blur px | none | 6-DoF occluding |", header
