@@ -184,7 +184,7 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
                             "full-per-pixel", "full-fallback", "full-fallback-coarse", "full-anchor", "full-lens-early",
                             "full-grid4k", "full-cells4", "cpu-poses", "cpu-shake", "cpu-kernels", "cpu-shake-decay",
                             "cpu-decay", "cpu-shake17", "cpu-shake-move", "cpu-shake-move-late",
-                            "cpu-shake-parallax", "cpu-path-weighted",
+                            "cpu-shake-parallax", "cpu-shake-occlusion", "cpu-path-weighted",
                             "cpu-path-weighted-d05", "cpu-path-weighted-eps04", "cpu-paper-loss", "-view", "view",
                             "view-k25", "view-k33", "view-k49", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite",
                             "gsmsdr-cpu", "sharp-degraded-poses", "sharp"}  # fmt: skip
