@@ -192,8 +192,8 @@ METHODS: Dict[str, MethodSpec] = {
             "cpu-shake-occlusion",
             "gsmsdr-cpu + occluding shake translations",
             "gsmsdr-cpu",
-            "cpu-shake-parallax whose render is moved to each time sample by forward splatting in depth order (a near "
-            "surface smears outward over the background) instead of the backward warp",
+            "cpu-shake-parallax whose time samples read the render along the depth each sample's camera sees (a "
+            "z-buffer; a near surface smears outward over the background) instead of the render's depth per pixel",
             shake_translation=True,
             shake_parallax=True,
             shake_occlusion=True,

@@ -92,10 +92,10 @@ class DegradationConfig:
     what differs with depth (near points one way, far points the other). False: both paths move every pixel and
     trade off against each other through the render's depth. On in ``gsmsdr-cpu``."""
     shake_occlusion: bool = False
-    """With ``shake_translation``, move the render to each time sample by forward splatting in depth order (the
-    nearest point landing on a pixel shows; :func:`~gsmsdr_ns.blur.shake.apply_camera_shake_occluding`), so a near
-    surface smears outward over the background as in a photo; what it uncovers is read by the backward warp. False:
-    every pixel reads the render along its own depth's motion (the backward warp alone)."""
+    """With ``shake_translation``, each time sample reads the render along the depth its own camera sees (a z-buffer
+    of the render's points projected into that sample; :func:`~gsmsdr_ns.blur.shake.apply_camera_shake_occluding`),
+    so a near surface smears outward over the background as in a photo; pixels no point reaches keep the render's
+    depth. False: every pixel reads the render along the render's depth at that pixel. Off in every preset."""
     render_margin: bool = False
     """Render the current kernel's half-width beyond every border of a blurred image and crop after blurring: a
     photo's border pixels are blurred with what lay just outside the frame, which replicate padding cannot know.

@@ -157,6 +157,18 @@ def _index_intrinsics(K: Tensor) -> Tensor:
     return shift @ K
 
 
+def _render_points(K_index: Tensor, depth: Tensor) -> Tensor:
+    """Camera-frame points ``z(p) K^-1 p`` of every pixel ``p`` of a depth map [..., H, W] -> [..., H, W, 3]
+    (``K_index`` [3, 3] in the pixel-index convention)."""
+    H, W = depth.shape[-2:]
+    dtype, device = K_index.dtype, K_index.device
+    ys, xs = torch.meshgrid(
+        torch.arange(H, dtype=dtype, device=device), torch.arange(W, dtype=dtype, device=device), indexing="ij"
+    )
+    pixels = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1)  # [H, W, 3]
+    return (pixels @ torch.linalg.inv(K_index).T) * depth.to(dtype)[..., None]
+
+
 def shake_sample_grid(K: Tensor, rotvecs: Tensor, translations: Tensor, depth: Tensor) -> Tensor:
     """Where each pixel of a shaken view reads the sharp render at each time sample, given the render's depth.
 
@@ -177,11 +189,7 @@ def shake_sample_grid(K: Tensor, rotvecs: Tensor, translations: Tensor, depth: T
     H, W = depth.shape[-2:]
     dtype = K.dtype
     K_index = _index_intrinsics(K)
-    ys, xs = torch.meshgrid(
-        torch.arange(H, dtype=dtype, device=K.device), torch.arange(W, dtype=dtype, device=K.device), indexing="ij"
-    )
-    pixels = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1)  # [H, W, 3]
-    points = (pixels @ torch.linalg.inv(K_index).T) * depth.to(dtype)[..., None]  # [H, W, 3] or [T, H, W, 3]
+    points = _render_points(K_index, depth)  # [H, W, 3] or [T, H, W, 3]
     R_T = axis_angle_to_rotation_matrix(rotvecs.to(dtype)).transpose(-1, -2)  # [T, 3, 3]
     points = points.expand(rotvecs.shape[0], H, W, 3)  # [T, H, W, 3]
     moved = torch.einsum("tij,thwj->thwi", R_T, points) + translations.to(dtype)[:, None, None, :]
@@ -225,14 +233,9 @@ def shake_splat_positions(K: Tensor, rotvecs: Tensor, translations: Tensor, dept
     Returns:
         positions [T, H, W, 2] (x, y pixel indices, centres at integers) and depths [T, H, W] in each sample's camera.
     """
-    H, W = depth.shape
     dtype = K.dtype
     K_index = _index_intrinsics(K)
-    ys, xs = torch.meshgrid(
-        torch.arange(H, dtype=dtype, device=K.device), torch.arange(W, dtype=dtype, device=K.device), indexing="ij"
-    )
-    pixels = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1)  # [H, W, 3]
-    points = (pixels @ torch.linalg.inv(K_index).T) * depth.to(dtype)[..., None]  # [H, W, 3]
+    points = _render_points(K_index, depth)  # [H, W, 3]
     KR = K_index @ axis_angle_to_rotation_matrix(rotvecs.to(dtype))  # [T, 3, 3]
     offsets = torch.einsum("tij,tj->ti", KR, translations.to(dtype))  # [T, 3]: K R_t c_t
     projected = torch.einsum("tij,hwj->thwi", KR, points) - offsets[:, None, None, :]  # [T, H, W, 3]
