@@ -199,6 +199,17 @@ METHODS: Dict[str, MethodSpec] = {
             shake_occlusion=True,
         ),  # fmt: skip
         make_method(
+            "cpu-shake-occlusion17",
+            "gsmsdr-cpu + occluding shake translations, 17 shake samples",
+            "gsmsdr-cpu",
+            "cpu-shake-occlusion with the render warped to 17 time samples of each path instead of 9 (the true "
+            "6-DoF path of the generated shake explains its photos to 37.6 dB at 9 samples, 40.5 at 17)",
+            shake_translation=True,
+            shake_parallax=True,
+            shake_occlusion=True,
+            shake_samples=17,
+        ),  # fmt: skip
+        make_method(
             "cpu-path-weighted",
             "gsmsdr-cpu, path in the deconvolved loss",
             "gsmsdr-cpu",

@@ -21,6 +21,9 @@ and compared with the photo (PSNR in sRGB over the view minus a margin the shake
 * ``6-DoF``: the true rotations and translations, each pixel moved by the view's depth.
 * ``6-DoF occluding``: the same, each time sample reading the sharp view along the depth its own camera sees
   (:func:`gsmsdr_ns.blur.shake.apply_camera_shake_occluding`, what ``shake_occlusion`` models).
+* ``sampled 6-DoF occluding``: the same true path read at only ``--path-samples`` time samples, the midpoints of
+  equal time bins (where the trained model samples its paths; the generator averages many more sub-frames), then
+  ``sampled 6-DoF occluding + kernel`` with the best kernel after it: what the path's discretisation costs.
 
 What the best fit of a model leaves is what training with that model cannot explain however well it learns. The
 fitted columns are local optima of L-BFGS from the starts named above: approximate ceilings, which can move by a
@@ -50,8 +53,16 @@ from gsmsdr_ns.blur.shake import (
 from gsmsdr_ns.io.images import read_image_float
 from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels
 
-MODELS = ("none", "kernel", "rotation", "path", "path + kernel", "moving path", "6-DoF", "6-DoF occluding")
+MODELS = ("none", "kernel", "rotation", "path", "path + kernel", "moving path", "6-DoF", "6-DoF occluding",
+          "sampled 6-DoF occluding", "sampled 6-DoF occluding + kernel")  # fmt: skip
 """Columns of the table, in order."""
+
+
+def midpoint_samples(num_frames: int, num_samples: int) -> Tensor:
+    """Indices of the ``num_frames`` recorded sub-frames nearest the midpoints of ``num_samples`` equal time bins
+    -> [num_samples] (the times :func:`gsmsdr_ns.blur.shake.shake_basis` samples a learnt path at)."""
+    centres = (torch.arange(num_samples, dtype=torch.float64) + 0.5) / num_samples * num_frames - 0.5
+    return centres.round().long().clamp(0, num_frames - 1)
 
 
 def psnr(a: Tensor, b: Tensor, margin: int) -> float:
@@ -156,6 +167,12 @@ def view_fits(sharp: Tensor, photo: Tensor, K: Tensor, record: Dict, depth: Tens
         along_path()
         return depth_blur(src, K, *fit_moving_path(src, tgt, K, cache["rotvecs"], depth, margin), depth)
 
+    def sampled_true_path() -> Tensor:
+        if "sampled" not in cache:
+            pick = midpoint_samples(rotvecs.shape[0], path_samples)
+            cache["sampled"] = apply_camera_shake_occluding(src, K, rotvecs[pick], translations[pick], depth, False)
+        return cache["sampled"]
+
     blurred = {
         "none": lambda: src,
         "kernel": lambda: fit_kernel(src, tgt, kernel_size, margin),
@@ -165,6 +182,8 @@ def view_fits(sharp: Tensor, photo: Tensor, K: Tensor, record: Dict, depth: Tens
         "moving path": moving_path,
         "6-DoF": lambda: depth_blur(src, K, rotvecs, translations, depth),
         "6-DoF occluding": lambda: apply_camera_shake_occluding(src, K, rotvecs, translations, depth, False),
+        "sampled 6-DoF occluding": sampled_true_path,
+        "sampled 6-DoF occluding + kernel": lambda: fit_kernel(sampled_true_path(), tgt, kernel_size, margin),
     }
     return {m: psnr(shown(blurred[m]()), photo, margin) for m in models}
 
@@ -186,7 +205,7 @@ class ShakeFit:
     kernel_size: int = 33
     """Side of the fitted kernels in pixels (gsmsdr-cpu's full-resolution size)."""
     path_samples: int = 9
-    """Time samples of the fitted rotation path (the camera_shake model's default)."""
+    """Time samples of the fitted paths and of the sampled true path (the camera_shake model's default)."""
 
     def main(self) -> None:
         torch.set_num_threads(1)
