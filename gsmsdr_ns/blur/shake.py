@@ -38,6 +38,7 @@ __all__ = [
     "shake_basis",
     "shake_mean_kernel",
     "shake_sample_grid",
+    "shake_sample_times",
     "shake_splat_positions",
     "visible_sample_depths",
 ]
@@ -51,15 +52,21 @@ SCENE_UNITS_PER_UNIT = 0.01
 at a depth of one unit a translation moves a pixel as far as the same number of rotation units."""
 
 
+def shake_sample_times(num_samples: int) -> Tensor:
+    """Times a path is sampled at, the midpoints of ``num_samples`` equal bins of the exposure [-1/2, 1/2] -> [T]
+    (float64)."""
+    if num_samples < 2:
+        raise ValueError(f"a shake path needs at least 2 samples, got {num_samples}")
+    return (torch.arange(num_samples, dtype=torch.float64) + 0.5) / num_samples - 0.5
+
+
 def shake_basis(num_samples: int, centred: bool, dtype: torch.dtype = torch.float32) -> Tensor:
-    """Polynomial basis of a path sampled at the midpoints of ``num_samples`` equal time bins -> [T, 3].
+    """Polynomial basis of a path sampled at :func:`shake_sample_times` -> [T, 3].
 
     ``centred``: columns of zero mean over the samples (the pose is the path's centre); else each column is 0 at
     mid-exposure (the pose lies on the path).
     """
-    if num_samples < 2:
-        raise ValueError(f"a shake path needs at least 2 samples, got {num_samples}")
-    tau = (torch.arange(num_samples, dtype=torch.float64) + 0.5) / num_samples - 0.5
+    tau = shake_sample_times(num_samples)
     basis = torch.stack([tau, tau**2, tau**3], dim=1)
     if centred:
         basis = basis - basis.mean(dim=0, keepdim=True)

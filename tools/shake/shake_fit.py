@@ -49,6 +49,7 @@ from gsmsdr_ns.blur.shake import (
     apply_camera_shake_with_depth,
     rotation_homographies,
     shake_sample_grid,
+    shake_sample_times,
 )
 from gsmsdr_ns.io.images import read_image_float
 from gsmsdr_ns.ops.pixel_kernels import apply_image_kernels
@@ -59,9 +60,9 @@ MODELS = ("none", "kernel", "rotation", "path", "path + kernel", "moving path", 
 
 
 def midpoint_samples(num_frames: int, num_samples: int) -> Tensor:
-    """Indices of the ``num_frames`` recorded sub-frames nearest the midpoints of ``num_samples`` equal time bins
-    -> [num_samples] (the times :func:`gsmsdr_ns.blur.shake.shake_basis` samples a learnt path at)."""
-    centres = (torch.arange(num_samples, dtype=torch.float64) + 0.5) / num_samples * num_frames - 0.5
+    """Indices of the ``num_frames`` recorded sub-frames (equal bins of the exposure) nearest the times a learnt path
+    of ``num_samples`` is sampled at (:func:`gsmsdr_ns.blur.shake.shake_sample_times`) -> [num_samples]."""
+    centres = (shake_sample_times(num_samples) + 0.5) * num_frames - 0.5
     return centres.round().long().clamp(0, num_frames - 1)
 
 
