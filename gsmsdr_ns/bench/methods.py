@@ -199,6 +199,16 @@ METHODS: Dict[str, MethodSpec] = {
             shake_occlusion=True,
         ),  # fmt: skip
         make_method(
+            "cpu-shake-true-paths",
+            "gsmsdr-cpu, true shake paths (diagnostic)",
+            "gsmsdr-cpu",
+            "cpu-shake-move whose rotation and translation paths are the generated shake's recorded ones (the "
+            "closest cubics), not trained: what learning the paths costs (scenes with shake records only)",
+            shake_translation=True,
+            shake_parallax=False,
+            shake_paths="records",
+        ),  # fmt: skip
+        make_method(
             "cpu-shake-occlusion17",
             "gsmsdr-cpu + occluding shake translations, 17 shake samples",
             "gsmsdr-cpu",

@@ -96,6 +96,11 @@ class DegradationConfig:
     of the render's points projected into that sample; :func:`~gsmsdr_ns.blur.shake.apply_camera_shake_occluding`),
     so a near surface smears outward over the background as in a photo; pixels no point reaches keep the render's
     depth. False: every pixel reads the render along the render's depth at that pixel. Off in every preset."""
+    shake_paths: Literal["learnt", "records"] = "learnt"
+    """``records``: each shaken view's path is the cubic closest to the true path its record gives (generated and
+    ``gsmsdr-degrade`` scenes record it; the pose must be the exact mid-exposure one) and is not trained: a
+    diagnostic of what learning the paths costs. Needs ``camera_shake``, not ``shake_parallax`` (the records give
+    the rotations themselves); with ``shake_translation`` the recorded translations too."""
     render_margin: bool = False
     """Render the current kernel's half-width beyond every border of a blurred image and crop after blurring: a
     photo's border pixels are blurred with what lay just outside the frame, which replicate padding cannot know.
@@ -157,6 +162,13 @@ class DegradationConfig:
             raise ValueError(f"kernel_centre_weight must be >= 0, got {self.kernel_centre_weight}")
         if not self.mask_reg_weight >= 0:
             raise ValueError(f"mask_reg_weight must be >= 0, got {self.mask_reg_weight}")
+        if self.shake_paths not in ("learnt", "records"):
+            raise ValueError(f"shake_paths must be 'learnt' or 'records', got {self.shake_paths!r}")
+        if self.shake_paths == "records" and (not self.camera_shake or self.shake_parallax):
+            raise ValueError(
+                "shake_paths 'records' needs camera_shake on and shake_parallax off (the records give the rotations "
+                f"themselves); got camera_shake={self.camera_shake}, shake_parallax={self.shake_parallax}"
+            )
         if self.shake_samples < 1:
             raise ValueError(f"shake_samples must be >= 1, got {self.shake_samples}")
         if self.resolution_kernel_size < 1 or self.resolution_kernel_size % 2 == 0:

@@ -20,7 +20,7 @@ checkpoints to them.
 from __future__ import annotations
 
 from collections import Counter
-from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -36,7 +36,7 @@ from gsmsdr_ns.blur.maan import host_checked_view_ids
 from gsmsdr_ns.blur.plan import DegradationPlan, crop_margin
 from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, describe_profiles, effective_factor
-from gsmsdr_ns.blur.shake import CameraShake
+from gsmsdr_ns.blur.shake import CameraShake, recorded_path
 from gsmsdr_ns.blur.state_keys import LEGACY_KEY_PREFIXES, remap_legacy_keys, with_fallback_state
 from gsmsdr_ns.ops.deconvolved_loss import compose_kernels
 from gsmsdr_ns.ops.grid_kernels import GridKernels, as_dense
@@ -99,6 +99,10 @@ class DegradationModel(nn.Module):
         densify_until: the step the Gaussians stop densifying (splatfacto's ``stop_split_at``), where the thin lens
             starts when the config's ``thin_lens_start`` is ``"densify_end"`` (and the shake paths' translations
             when ``shake_translation_start`` is); None: unknown, both start with the field.
+        shake_records: with the config's ``shake_paths`` ``"records"``, each training image's ``motion`` record
+            (None for an image without one), in the training split's order.
+        pose_scale: the scale the dataparser applied to the poses (the recorded translations are scaled by it;
+            needed to read recorded translations).
 
     Attributes (None when no image needs them): ``camera_shake`` (:class:`CameraShake`), ``thin_lens``
     (:class:`ThinLensDefocus`), ``blur_field`` (:class:`BlurField`), ``hpko`` (:class:`HPKOScheduler`),
@@ -120,6 +124,8 @@ class DegradationModel(nn.Module):
         resolution_schedule: int = 3000,
         preview_max_side: int = 128,
         densify_until: Optional[int] = None,
+        shake_records: Optional[Sequence[Optional[Mapping[str, Any]]]] = None,
+        pose_scale: Optional[float] = None,
     ) -> None:
         super().__init__()
         self.profiles: List[DegradationProfile] = list(profiles)
@@ -166,12 +172,44 @@ class DegradationModel(nn.Module):
                 parallax=config.shake_parallax,
                 occlusion=config.shake_occlusion,
             )
+        if self.camera_shake is not None and config.shake_paths == "records":
+            self._set_recorded_paths(shake_records, pose_scale)
         mixres = [p for p in self.profiles if p.needs_resolution_model]
         if mixres:
             upsample = Counter(p.mixres_upsample for p in mixres).most_common(1)[0][0]
             self.resolution_model = ResolutionLossModel(
                 num_views=num_views, kernel_size=config.resolution_kernel_size, upsample=upsample
             )
+
+    def _set_recorded_paths(
+        self, records: Optional[Sequence[Optional[Mapping[str, Any]]]], pose_scale: Optional[float]
+    ) -> None:
+        """``shake_paths`` records: every shaken view's path from its ``motion`` record, not trained."""
+        assert self.camera_shake is not None
+        if records is None or len(records) != len(self.profiles):
+            raise ValueError(
+                f"shake_paths 'records' needs one motion record per training view ({len(self.profiles)}), got "
+                f"{'none' if records is None else len(records)}"
+            )
+        translate = self.camera_shake.translation_coefficients is not None
+        for view, (profile, record) in enumerate(zip(self.profiles, records)):
+            if not profile.motion:
+                continue
+            if record is None or "rotvecs" not in record or not profile.exact_pose:
+                raise ValueError(
+                    f"shake_paths 'records': training view {view} has no recorded shake path at an exact "
+                    "mid-exposure pose (only generated and gsmsdr-degrade scenes record one); use shake_paths 'learnt'"
+                )
+            if translate and record.get("translations") is not None and pose_scale is None:
+                raise ValueError(
+                    "shake_paths 'records': the dataparser gives no pose scale (metadata 'pose_scale') to bring the "
+                    "recorded translations into the scene's units; use gsmsdr's deblur or scene dataparser"
+                )
+            times, rotvecs, translations = recorded_path(record, 1.0 if pose_scale is None else pose_scale)
+            if translate and translations is None:
+                translations = torch.zeros_like(rotvecs)  # a rotation-only record: the camera did not move
+            self.camera_shake.set_path(view, times, rotvecs, translations if translate else None)
+        self.camera_shake.requires_grad_(False)
 
     # -- description and state ------------------------------------------------------------------------------
 

@@ -44,6 +44,7 @@ __all__ = [
     "DegradationProfile",
     "effective_factor",
     "ResolutionLossModel",
+    "motion_records",
     "training_profiles",
     "describe_profiles",
 ]
@@ -309,6 +310,21 @@ def training_profiles(
             f"{num_train}: metadata['degradations'] must hold one record per training image, in the split's order."
         )
     return [DegradationProfile.from_mode(mode, record) for record in records]
+
+
+def motion_records(
+    records: Optional[Sequence[Optional[Mapping[str, Any]]]], num_train: int
+) -> List[Optional[Mapping[str, Any]]]:
+    """Each training image's ``motion`` effect record (None where it has none), from the dataparser's
+    ``metadata["degradations"]`` (None: no records, all None)."""
+    if records is None:
+        return [None] * num_train
+    found: List[Optional[Mapping[str, Any]]] = []
+    for record in records:
+        effects = (record or {}).get("effects") or {}
+        motion = effects.get("motion") if isinstance(effects, Mapping) else None
+        found.append(motion if isinstance(motion, Mapping) else None)
+    return found
 
 
 def _profile_kind(profile: DegradationProfile) -> str:

@@ -17,7 +17,7 @@ one module (:class:`CameraShake`) holding the coefficients.
 
 from __future__ import annotations
 
-from typing import Callable, Optional, Tuple
+from typing import Any, Callable, Mapping, Optional, Tuple
 
 import torch
 from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
@@ -34,6 +34,8 @@ __all__ = [
     "apply_camera_shake_occluding",
     "apply_camera_shake_with_depth",
     "parallax_rotvecs",
+    "path_coefficients",
+    "recorded_path",
     "rotation_homographies",
     "shake_basis",
     "shake_mean_kernel",
@@ -71,6 +73,47 @@ def shake_basis(num_samples: int, centred: bool, dtype: torch.dtype = torch.floa
     if centred:
         basis = basis - basis.mean(dim=0, keepdim=True)
     return basis.to(dtype)
+
+
+def path_coefficients(times: Tensor, values: Tensor) -> Tensor:
+    """Least-squares coefficients of the path through the pose (:func:`shake_basis`'s ``centred`` False columns,
+    ``tau``, ``tau^2``, ``tau^3``) closest to a sampled path.
+
+    Args:
+        times: [S] times of the samples in the exposure [-1/2, 1/2] (0: the pose), S >= 3.
+        values: [S, D] the path at those times (rotation vectors or translations, one column per axis).
+    Returns:
+        [3, D] coefficients, in the units of ``values``.
+    """
+    if times.ndim != 1 or values.ndim != 2 or values.shape[0] != times.shape[0] or times.shape[0] < 3:
+        raise ValueError(
+            f"a sampled path needs times [S] and values [S, D] with S >= 3, got {tuple(times.shape)} and "
+            f"{tuple(values.shape)}"
+        )
+    tau = times.to(torch.float64)
+    basis = torch.stack([tau, tau**2, tau**3], dim=1)  # [S, 3]
+    return torch.linalg.lstsq(basis, values.to(torch.float64)).solution
+
+
+def recorded_path(record: Mapping[str, Any], pose_scale: float = 1.0) -> Tuple[Tensor, Tensor, Optional[Tensor]]:
+    """The true path of a degradation record's ``motion`` effect (``gsmsdr-synth`` / ``gsmsdr-degrade`` write
+    ``times`` in (0, 1), camera-to-reference ``rotvecs`` and, for re-rendered shake, ``translations``) in the
+    conventions :func:`shake_sample_grid` reads: the reference camera's rotation at each sample and its translation
+    times ``pose_scale`` (the scene's units scaled as the dataparser scaled the poses).
+
+    Returns:
+        times [S] in [-1/2, 1/2] (float64), rotvecs [S, 3] (radians), translations [S, 3] or None (float64).
+    """
+    if "rotvecs" not in record or record.get("pose", "camera_to_reference") != "camera_to_reference":
+        raise ValueError("a recorded shake path needs the record's camera-to-reference 'rotvecs'")
+    rotvecs = torch.tensor(record["rotvecs"], dtype=torch.float64)
+    count = rotvecs.shape[0]
+    times = record.get("times")
+    tau = torch.tensor(times, dtype=torch.float64) if times is not None else (torch.arange(count) + 0.5) / count
+    translations = record.get("translations")
+    moved = None if translations is None else torch.tensor(translations, dtype=torch.float64) * float(pose_scale)
+    # X_ref = R_c X_t + c_t: the sample's camera reads the reference render turned by R_c^T (rotvec -r), moved by c_t
+    return tau - 0.5, -rotvecs, moved
 
 
 def rotation_homographies(K: Tensor, rotvecs: Tensor) -> Tensor:
@@ -365,6 +408,19 @@ class CameraShake(nn.Module):
         self.translation_coefficients = nn.Parameter(torch.zeros(num_views, 3, 3)) if translation else None
         self.register_buffer("basis_through_pose", shake_basis(self.num_samples, centred=False), persistent=False)
         self.register_buffer("basis_centred", shake_basis(self.num_samples, centred=True), persistent=False)
+
+    @torch.no_grad()
+    def set_path(self, view: int, times: Tensor, rotvecs: Tensor, translations: Optional[Tensor] = None) -> None:
+        """Set view ``view``'s path through the pose to the cubic closest to a sampled one (:func:`path_coefficients`):
+        ``times`` [S] in [-1/2, 1/2], ``rotvecs`` [S, 3] (radians) and ``translations`` [S, 3] (scene units, camera
+        frame; needs ``translation``) as :func:`shake_sample_grid` reads them."""
+        self.coefficients[view] = (path_coefficients(times, rotvecs) / RADIANS_PER_UNIT).to(self.coefficients)
+        if translations is None:
+            return
+        if self.translation_coefficients is None:
+            raise ValueError("set_path: this camera shake learns no translation path (translation=False)")
+        coefficients = path_coefficients(times, translations) / SCENE_UNITS_PER_UNIT
+        self.translation_coefficients[view] = coefficients.to(self.translation_coefficients)
 
     def _basis(self, centred: bool) -> Tensor:
         return self.basis_centred if centred else self.basis_through_pose

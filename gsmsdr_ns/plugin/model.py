@@ -43,7 +43,7 @@ from gsmsdr_ns.blur.degradation_model import (
     with_fallback_state,
 )
 from gsmsdr_ns.blur.field import BlurFieldConfig
-from gsmsdr_ns.blur.profile import training_profiles
+from gsmsdr_ns.blur.profile import motion_records, training_profiles
 from gsmsdr_ns.data.effects import DegradationMode
 from gsmsdr_ns.ops.ssim import SSIM
 from gsmsdr_ns.plugin.cameras import TrainImageSizes, intrinsics_at_scale, viewmats_from_camera_to_worlds
@@ -146,7 +146,8 @@ class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):
         """``degradation``: the :class:`DegradationModel` of the training images (one profile each, from the
         dataparser's ``metadata["degradations"]`` and the ``degradation`` mode); a sharp scene gets one that builds
         nothing and trains as plain splatfacto."""
-        profiles = training_profiles(self.config.degradation, self.kwargs.get("metadata"), self.num_train_data)
+        metadata = self.kwargs.get("metadata") or {}
+        profiles = training_profiles(self.config.degradation, metadata, self.num_train_data)
         self.degradation = DegradationModel(
             profiles,
             self.config.blur_field,
@@ -155,6 +156,8 @@ class GSMSDRModel(FiniteCheckMixin, SplatfactoModel):
             resolution_schedule=self.config.resolution_schedule,
             preview_max_side=self.config.viewer_blur_max_side,
             densify_until=self.config.stop_split_at,
+            shake_records=motion_records(metadata.get("degradations"), self.num_train_data),
+            pose_scale=metadata.get("pose_scale"),
         )
         if self.num_train_data > 0:
             CONSOLE.log(f"gsmsdr: training views: {self.degradation.describe_training_views()}")

@@ -276,7 +276,13 @@ class SortedSceneParser(DataParser):
             scene_box=SceneBox(aabb=torch.tensor([[-box] * 3, [box] * 3], dtype=torch.float32)),
             dataparser_scale=scene.scale,
             dataparser_transform=scene.transform,
-            metadata={**extra, "image_names": [cams.names[i] for i in idx], "pose_source": cams.source, **metadata},
+            metadata={
+                **extra,
+                "image_names": [cams.names[i] for i in idx],
+                "pose_source": cams.source,
+                "pose_scale": float(scene.scale),
+                **metadata,
+            },
         )
 
 

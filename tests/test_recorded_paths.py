@@ -1,0 +1,112 @@
+"""Shake paths read from a generated scene's records (``DegradationConfig.shake_paths`` "records"): the closest
+cubic to a recorded path, the recorded path's blur of the sharp twin, and the degradation model that holds them
+fixed. A tiny real generated scene and its sharp twin, written to disk; no nerfstudio trainer."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gsmsdr_ns.bench.scenes import SceneSpec, ensure_scene
+from gsmsdr_ns.blur.degradation_config import DegradationConfig
+from gsmsdr_ns.blur.degradation_model import DegradationModel
+from gsmsdr_ns.blur.field import BlurFieldConfig
+from gsmsdr_ns.blur.profile import DegradationProfile, motion_records
+from gsmsdr_ns.blur.shake import CameraShake, path_coefficients, recorded_path
+from tools.shake.shake_fit import _image, psnr
+
+SPEC = SceneSpec(variant="motion-strong", width=96, height=72, num_views=6, hold=3, num_points=300, seed=0)
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory) -> tuple[Path, Path]:
+    root = tmp_path_factory.mktemp("recorded")
+    return ensure_scene(root, SPEC), ensure_scene(root, SPEC.with_variant("sharp"))
+
+
+def train_records(scene: Path) -> dict:
+    images = json.loads((scene / "degradation.json").read_text())["images"]
+    return {n: r for n, r in sorted(images.items()) if r["split"] == "train"}
+
+
+def test_the_closest_cubic_reproduces_a_cubic_and_rejects_too_few_samples() -> None:
+    times = torch.linspace(-0.5, 0.5, 7, dtype=torch.float64)
+    coefficients = torch.tensor([[1.0, -2.0], [0.5, 0.0], [-3.0, 4.0]], dtype=torch.float64)
+    values = torch.stack([times, times**2, times**3], dim=1) @ coefficients
+    assert torch.allclose(path_coefficients(times, values), coefficients, atol=1e-9)
+    with pytest.raises(ValueError, match="S >= 3"):
+        path_coefficients(times[:2], values[:2])
+
+
+def test_the_recorded_path_blurs_the_sharp_twin_into_the_photo(scenes) -> None:
+    """The generator's path is a cubic through the mid-exposure pose: the module's 9 samples of its closest cubic,
+    applied to the sharp twin with the true depth, explain the shaken photo far better than the sharp image does and
+    than the same path with the rotations' sign flipped (the convention the records are read in matters)."""
+    shaken, sharp = scenes
+    name, record = next(iter(train_records(shaken).items()))
+    motion = record["effects"]["motion"]
+    intr = json.loads((shaken / "scene.json").read_text())["intrinsics"]
+    K = torch.tensor([[intr["fx"], 0.0, intr["cx"]], [0.0, intr["fy"], intr["cy"]], [0.0, 0.0, 1.0]])
+    depth = torch.from_numpy(np.load(shaken / "depth" / f"{Path(name).stem}.npy").astype(np.float32))
+    source, photo = _image(sharp / "images" / name), _image(shaken / "images" / name)  # linear light
+    times, rotvecs, translations = recorded_path(motion)
+    assert translations is not None and times.min() > -0.5 and times.max() < 0.5
+    # the cubic fit is the recorded path itself (the generator draws cubic Bezier paths)
+    cubic = torch.stack([times, times**2, times**3], 1) @ path_coefficients(times, rotvecs)
+    assert float((cubic - rotvecs).abs().max()) < 1e-3 * float(rotvecs.abs().max()), (cubic, rotvecs)
+
+    def blurred(sign: float) -> torch.Tensor:
+        shake = CameraShake(1, num_samples=9, translation=True)
+        shake.set_path(0, times, sign * rotvecs, translations)
+        with torch.no_grad():
+            return shake(source, K, torch.tensor([0]), centred=False, linear_light=False, depth=depth)
+
+    margin = int(np.ceil(float(motion.get("max_displacement_px", motion["blur_px"])))) + 2
+    none, true, flipped = (
+        psnr(source, photo, margin),
+        psnr(blurred(1.0), photo, margin),
+        psnr(blurred(-1.0), photo, margin),
+    )
+    assert true > none + 5.0 and true > flipped + 3.0, (none, true, flipped)
+
+
+def test_the_degradation_model_holds_the_recorded_paths_fixed(scenes) -> None:
+    shaken, _ = scenes
+    records = [{**r, "name": n} for n, r in train_records(shaken).items()]
+    profiles = [DegradationProfile.from_metadata(r) for r in records]
+    assert all(p.motion and p.exact_pose for p in profiles)
+    config = DegradationConfig(camera_shake=True, shake_translation=True, shake_paths="records")
+    field = BlurFieldConfig(kernel_sizes=(5, 9, 17))
+    model = DegradationModel(
+        profiles, field, config, shake_records=motion_records(records, len(records)), pose_scale=2.0
+    )
+    shake = model.camera_shake
+    assert shake is not None and not any(p.requires_grad for p in shake.parameters())
+    times, rotvecs, translations = recorded_path(records[0]["effects"]["motion"], pose_scale=2.0)
+    assert torch.allclose(shake.coefficients[0].double(), path_coefficients(times, rotvecs) / 0.01, atol=1e-4)
+    assert translations is not None and shake.translation_coefficients is not None
+    assert torch.allclose(
+        shake.translation_coefficients[0].double(), path_coefficients(times, translations) / 0.01, atol=1e-4
+    )
+    # learnt paths stay trainable; records without a path, or without the pose scale their translations need, fail
+    learnt = DegradationModel(profiles, field, DegradationConfig(camera_shake=True, shake_translation=True))
+    assert learnt.camera_shake is not None and learnt.camera_shake.coefficients.requires_grad
+    with pytest.raises(ValueError, match="training view 1 has no recorded shake path"):
+        missing = motion_records(records, len(records))
+        missing[1] = None
+        DegradationModel(profiles, field, config, shake_records=missing, pose_scale=1.0)
+    with pytest.raises(ValueError, match="pose scale"):
+        DegradationModel(profiles, field, config, shake_records=motion_records(records, len(records)))
+
+
+def test_recorded_paths_need_the_shake_and_not_the_parallax_offsets() -> None:
+    with pytest.raises(ValueError, match="camera_shake on and shake_parallax off"):
+        DegradationConfig(shake_paths="records")
+    with pytest.raises(ValueError, match="camera_shake on and shake_parallax off"):
+        DegradationConfig(camera_shake=True, shake_translation=True, shake_parallax=True, shake_paths="records")
+    with pytest.raises(ValueError, match="shake_paths must be"):
+        DegradationConfig(camera_shake=True, shake_paths="true")  # type: ignore[arg-type]
