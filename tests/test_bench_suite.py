@@ -436,6 +436,25 @@ def test_final_renders_and_train_fit_are_written_without_changing_the_run(tmp_pa
     assert "train-view fit PSNR" in text and f"{record['train_psnr']:.2f}" in text
 
 
+def test_a_run_with_the_recorded_shake_paths_keeps_them_as_its_learnt_paths(tmp_path: Path, capsys) -> None:
+    """``cpu-shake-true-paths`` through the real trainer: its run record's ``shake_paths`` (written with
+    ``train_fit``) are the scene's recorded paths, so ``tools/shake/path_error.py`` finds them at no distance from the
+    truth. Real training, tiny scene."""
+    from tools.shake.path_error import PathError
+
+    suite = load_suite(write_suite(tmp_path, DIAGNOSTICS_SUITE.replace("[full]", "[cpu-shake-true-paths]")))
+    out = tmp_path / "out"
+    assert not run_suite(suite, out, progress=False, plots=False).failed
+    key = RunKey("motion", "cpu-shake-true-paths", 6, 0)
+    record = finished_record(suite, out, key)
+    assert record is not None and record["shake_paths"]["pose_scale"] > 0
+    views = record["shake_paths"]["views"]
+    assert len(views) == 8 and all(v["motion"] and not v["centred"] and len(v["rotvecs"]) == 9 for v in views)
+    PathError(run=out / "runs" / f"{key.id}.json", data=Path(record["data"]), stride=2).main()
+    extent, error = (float(x) for x in capsys.readouterr().out.splitlines()[-1].strip("| ").split("|")[1:3])
+    assert extent > 0.3 and error < 0.05 * extent, (extent, error)
+
+
 def test_a_preset_that_degrades_nothing_shares_its_sharp_photos_scene() -> None:
     """On the real-photo suite, the sharp fern's "sharp photos with the degraded photos' poses" bound, its plain
     Gaussians and every scene's sharp upper bound read the same folder (named without building it), so they train

@@ -38,8 +38,11 @@ def test_the_closest_cubic_reproduces_a_cubic_and_rejects_too_few_samples() -> N
     coefficients = torch.tensor([[1.0, -2.0], [0.5, 0.0], [-3.0, 4.0]], dtype=torch.float64)
     values = torch.stack([times, times**2, times**3], dim=1) @ coefficients
     assert torch.allclose(path_coefficients(times, values), coefficients, atol=1e-9)
-    with pytest.raises(ValueError, match="S >= 3"):
-        path_coefficients(times[:2], values[:2])
+    # two samples (a short shake's record): the line through them, no curvature
+    line = path_coefficients(torch.tensor([-0.25, 0.25], dtype=torch.float64), torch.tensor([[-1.0], [1.0]]))
+    assert torch.allclose(line, torch.tensor([[4.0], [0.0], [0.0]], dtype=torch.float64))
+    with pytest.raises(ValueError, match="S >= 1"):
+        path_coefficients(times[:0], values[:0])
 
 
 def test_the_recorded_path_blurs_the_sharp_twin_into_the_photo(scenes) -> None:
@@ -110,3 +113,39 @@ def test_recorded_paths_need_the_shake_and_not_the_parallax_offsets() -> None:
         DegradationConfig(camera_shake=True, shake_translation=True, shake_parallax=True, shake_paths="records")
     with pytest.raises(ValueError, match="shake_paths must be"):
         DegradationConfig(camera_shake=True, shake_paths="true")  # type: ignore[arg-type]
+
+
+def test_path_error_is_zero_for_the_true_path_either_way_in_time_and_not_for_a_wrong_one(scenes, tmp_path, capsys):
+    """tools/shake/path_error.py on a run record holding the true paths (read forwards, then backwards in time:
+    the same blur) and the true paths turned the other way."""
+    from gsmsdr_ns.blur.shake import shake_sample_times
+    from tools.shake.path_error import PathError
+
+    shaken, _ = scenes
+    times = shake_sample_times(9)
+    basis = torch.stack([times, times**2, times**3], dim=1)
+
+    def run_file(name: str, rotation_sign: float, reverse: bool) -> Path:
+        views = []
+        for view, record in train_records(shaken).items():
+            record_times, rotvecs, translations = recorded_path(record["effects"]["motion"], pose_scale=0.5)
+            rot = basis @ path_coefficients(record_times, rotation_sign * rotvecs)
+            move = basis @ path_coefficients(record_times, translations)
+            rot, move = (rot.flip(0), move.flip(0)) if reverse else (rot, move)
+            views.append({"name": view, "motion": True, "rotvecs": rot.tolist(), "translations": move.tolist()})
+        path = tmp_path / f"{name}.json"
+        path.write_text(json.dumps({"shake_paths": {"times": times.tolist(), "pose_scale": 0.5, "views": views}}))
+        return path
+
+    def mean_row(path: Path) -> list[float]:
+        PathError(run=path, data=shaken, stride=2).main()
+        return [float(x) for x in capsys.readouterr().out.splitlines()[-1].strip("| ").split("|")[1:]]
+
+    extent, error, offset, shape = mean_row(run_file("true", 1.0, reverse=False))
+    assert extent > 0.5 and error < 0.05 * extent and offset < 0.05 * extent and shape <= error + 1e-9
+    assert mean_row(run_file("reversed", 1.0, reverse=True))[1] < 0.05 * extent
+    wrong = mean_row(run_file("turned", -1.0, reverse=False))
+    assert wrong[1] > 0.5 * extent and wrong[3] <= wrong[1] + 1e-9, wrong
+    with pytest.raises(SystemExit, match="no shake_paths"):
+        (tmp_path / "none.json").write_text("{}")
+        PathError(run=tmp_path / "none.json", data=shaken).main()

@@ -157,4 +157,44 @@ def train_view_psnr(run) -> float:
     return float(np.mean(values))
 
 
-__all__ = ["evaluate_test_views", "make_lpips", "train_view_psnr"]
+def learnt_shake_paths(run) -> Optional[Dict[str, Any]]:
+    """The camera-shake paths a run learnt (None without a shake model), in the conventions of
+    :func:`~gsmsdr_ns.blur.shake.shake_sample_grid`: per training view (the split's order) the rotation vectors
+    [T, 3] (radians) the render is warped by, parallax offsets included (they read the median depth of the view's
+    render, rendered here), and the translations [T, 3] (scene units of the dataparser's scaled poses); with the
+    sample ``times`` in [-1/2, 1/2] and the dataparser's ``pose_scale``. What :mod:`tools.shake.path_error` compares
+    with the recorded paths."""
+    import torch
+
+    from gsmsdr_ns.blur.shake import parallax_rotvecs, shake_sample_times
+
+    model = run.model
+    shake = model.degradation.camera_shake
+    if shake is None:
+        return None
+    datamanager = run.pipeline.datamanager
+    cameras = datamanager.train_dataset.cameras
+    metadata = datamanager.train_dataset.metadata or {}
+    names = metadata.get("image_names") or [Path(f).name for f in datamanager.train_dataset.image_filenames]
+    views: List[Dict[str, Any]] = []
+    model.eval()
+    with torch.no_grad(), torch.random.fork_rng(devices=[]):
+        for index, profile in enumerate(model.degradation.profiles):
+            ids = model.degradation.view_ids(index, model.device)
+            centred = not profile.exact_pose
+            rotvecs, translations = shake.rotvecs(ids, centred), shake.translations(ids, centred)
+            median_depth = None
+            if shake.parallax and shake.translation_coefficients is not None:
+                camera = cameras[index : index + 1].to(model.device)
+                depth = model.get_outputs(camera)["depth"]
+                median_depth = float(depth.clamp_min(1e-3).median())
+                rotvecs = rotvecs + parallax_rotvecs(translations, torch.tensor(median_depth))
+            views.append({"name": names[index], "motion": profile.motion, "centred": centred,
+                          "median_depth": median_depth, "rotvecs": rotvecs.cpu().tolist(),
+                          "translations": translations.cpu().tolist()})  # fmt: skip
+    model.train()
+    return {"times": shake_sample_times(shake.num_samples).tolist(), "pose_scale": metadata.get("pose_scale"),
+            "views": views}  # fmt: skip
+
+
+__all__ = ["evaluate_test_views", "learnt_shake_paths", "make_lpips", "train_view_psnr"]

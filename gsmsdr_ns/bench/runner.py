@@ -57,7 +57,7 @@ def train_and_record(
     ``work_dir`` is ``<out>/runs/nerfstudio`` (the suite's renders go to ``<out>/renders``)."""
     import torch
 
-    from gsmsdr_ns.bench.evaluation import train_view_psnr
+    from gsmsdr_ns.bench.evaluation import learnt_shake_paths, train_view_psnr
     from gsmsdr_ns.bench.timing import PeakMemory, TimingRecorder
     from gsmsdr_ns.bench.training import InProcessRun
     from gsmsdr_ns.plugin.pose_alignment import PoseAlignmentConfig
@@ -84,6 +84,7 @@ def train_and_record(
     curve: List[Dict[str, Any]] = []
     trace: Dict[str, List[Any]] = {"seconds": [], "gaussians": []}
     eval_seconds = 0.0
+    shake_paths: Optional[Dict[str, Any]] = None
     try:
         eval_steps = suite.eval_steps(key.steps)
         alignment = PoseAlignmentConfig() if suite.align_poses else None
@@ -102,6 +103,7 @@ def train_and_record(
             metrics = evaluate_test_views(run, lpips, align=alignment if last else None, renders_to=renders)
             if last and suite.train_fit:
                 metrics["train_psnr"] = train_view_psnr(run)
+                shake_paths = learnt_shake_paths(run)
             eval_seconds += time.perf_counter() - t0
             point = {"step": run.step, "seconds": recorder.wall, **metrics,
                      "num_gaussians": int(run.model.num_points), "breakdown": recorder.totals()}  # fmt: skip
@@ -138,6 +140,7 @@ def train_and_record(
             "breakdown_split": recorder.split(),
             "blur_field_modules": _active_modules(run.model),
             "curve": curve,
+            **({"shake_paths": shake_paths} if shake_paths is not None else {}),
             "step_trace": trace,
             "step_schedule": dataclasses.asdict(_step_schedule(run, key.steps)),
             "machine": machine_info(),

@@ -77,22 +77,26 @@ def shake_basis(num_samples: int, centred: bool, dtype: torch.dtype = torch.floa
 
 def path_coefficients(times: Tensor, values: Tensor) -> Tensor:
     """Least-squares coefficients of the path through the pose (:func:`shake_basis`'s ``centred`` False columns,
-    ``tau``, ``tau^2``, ``tau^3``) closest to a sampled path.
+    ``tau``, ``tau^2``, ``tau^3``) closest to a sampled path. A path of fewer than 3 samples (a short shake's record)
+    fits the first columns only, the others 0.
 
     Args:
-        times: [S] times of the samples in the exposure [-1/2, 1/2] (0: the pose), S >= 3.
+        times: [S] times of the samples in the exposure [-1/2, 1/2] (0: the pose), S >= 1.
         values: [S, D] the path at those times (rotation vectors or translations, one column per axis).
     Returns:
         [3, D] coefficients, in the units of ``values``.
     """
-    if times.ndim != 1 or values.ndim != 2 or values.shape[0] != times.shape[0] or times.shape[0] < 3:
+    if times.ndim != 1 or values.ndim != 2 or values.shape[0] != times.shape[0] or times.shape[0] < 1:
         raise ValueError(
-            f"a sampled path needs times [S] and values [S, D] with S >= 3, got {tuple(times.shape)} and "
+            f"a sampled path needs times [S] and values [S, D] with S >= 1, got {tuple(times.shape)} and "
             f"{tuple(values.shape)}"
         )
     tau = times.to(torch.float64)
-    basis = torch.stack([tau, tau**2, tau**3], dim=1)  # [S, 3]
-    return torch.linalg.lstsq(basis, values.to(torch.float64)).solution
+    used = min(int(tau.shape[0]), 3)
+    basis = torch.stack([tau, tau**2, tau**3][:used], dim=1)  # [S, used]
+    coefficients = values.new_zeros((3, values.shape[1]), dtype=torch.float64)
+    coefficients[:used] = torch.linalg.lstsq(basis, values.to(torch.float64)).solution
+    return coefficients
 
 
 def recorded_path(record: Mapping[str, Any], pose_scale: float = 1.0) -> Tuple[Tensor, Tensor, Optional[Tensor]]:
