@@ -149,3 +149,20 @@ def test_path_error_is_zero_for_the_true_path_either_way_in_time_and_not_for_a_w
     with pytest.raises(SystemExit, match="no shake_paths"):
         (tmp_path / "none.json").write_text("{}")
         PathError(run=tmp_path / "none.json", data=shaken).main()
+
+
+def test_kernels_after_a_shake_path_are_centred_on_exact_poses_only_when_asked() -> None:
+    """An exact mid-exposure pose leaves the field's kernels uncentred (the blur of a curved shake is not centred on
+    its midpoint) unless ``kernel_centre_after_shake``, and then only where a shake path runs first; a pose estimated
+    from the photo is always centred."""
+    exact, estimated = DegradationProfile(motion=True, exact_pose=True), DegradationProfile(motion=True)
+    field = BlurFieldConfig(kernel_sizes=(5, 9, 17))
+
+    def centred(config: DegradationConfig, profiles: list) -> list:
+        model = DegradationModel(profiles, field, config)
+        return [model.plan(v, render_downscale=1, step=10_000).kernel_centre_loss for v in range(len(profiles))]
+
+    shake = dict(camera_shake=True, shake_translation=True, shake_parallax=True)
+    assert centred(DegradationConfig(**shake), [exact, estimated]) == [False, True]
+    assert centred(DegradationConfig(**shake, kernel_centre_after_shake=True), [exact, estimated]) == [True, True]
+    assert centred(DegradationConfig(kernel_centre_after_shake=True), [exact, estimated]) == [False, True]

@@ -199,6 +199,14 @@ METHODS: Dict[str, MethodSpec] = {
             shake_occlusion=True,
         ),  # fmt: skip
         make_method(
+            "cpu-kernel-centred",
+            "gsmsdr-cpu, kernels centred after the path",
+            "gsmsdr-cpu",
+            "gsmsdr-cpu whose per-view kernels after the shake path are centred on exact mid-exposure poses too (the "
+            "path through the pose carries the blur's shift; a free kernel could shift each view's image)",
+            kernel_centre_after_shake=True,
+        ),  # fmt: skip
+        make_method(
             "cpu-shake-true-paths",
             "gsmsdr-cpu, true shake paths (diagnostic)",
             "gsmsdr-cpu",

@@ -116,6 +116,10 @@ class DegradationConfig:
     near the centre of its blur; a kernel free to shift lets the sharp scene drift off that pose by a different
     amount in every view). Images whose records give the exact mid-exposure pose of a simulated shake (generated
     and ``gsmsdr-degrade`` scenes) are not centred. 0: off."""
+    kernel_centre_after_shake: bool = False
+    """Also centre the field's kernels on images a shake path blurs first whose pose is the exact mid-exposure one:
+    the path, which passes through that pose, carries the blur's shift, so the kernel after it is left only what
+    the path does not explain, and is not free to shift the view's image against the other views."""
     deconvolved_loss_weight: float = 10.0
     """Weight of the deconvolved residual loss (``ops/deconvolved_loss.py``) on images the field (or, with
     ``deconvolved_loss_on_lens``, the thin lens) blurs: the mean squared residual weighted by the inverse of the

@@ -330,7 +330,9 @@ class DegradationModel(nn.Module):
             margin=blur_scale.kernel_size // 2 if config.render_margin else 0,
             deconvolved_loss=(runs_field or (lens and config.deconvolved_loss_on_lens))
             and config.deconvolved_loss_weight > 0,
-            kernel_centre_loss=runs_field and config.kernel_centre_weight > 0 and not profile.exact_pose,
+            kernel_centre_loss=runs_field
+            and config.kernel_centre_weight > 0
+            and (not profile.exact_pose or (shake and config.kernel_centre_after_shake)),
             has_model=True,
         )
 
