@@ -16,7 +16,8 @@ from gsmsdr_ns.blur.degradation_config import DegradationConfig
 from gsmsdr_ns.blur.degradation_model import DegradationModel
 from gsmsdr_ns.blur.field import BlurFieldConfig
 from gsmsdr_ns.blur.profile import DegradationProfile, motion_records
-from gsmsdr_ns.blur.shake import CameraShake, path_coefficients, recorded_path
+from gsmsdr_ns.blur.recorded_shake import recorded_path
+from gsmsdr_ns.blur.shake import CameraShake, path_coefficients
 from tools.shake.shake_fit import _image, psnr
 
 SPEC = SceneSpec(variant="motion-strong", width=96, height=72, num_views=6, hold=3, num_points=300, seed=0)

@@ -180,6 +180,13 @@ class DegradationConfig:
                 f"resolution_kernel_size must be a positive odd integer, got {self.resolution_kernel_size}"
             )
 
+    def start_step(self, start: str, densify_until: Optional[int]) -> int:
+        """First step of a model part that starts at ``"warmup"`` or ``"densify_end"`` (``thin_lens_start``,
+        ``shake_translation_start``): never before ``warmup``; at ``warmup`` when ``densify_until`` is unknown."""
+        if start == "densify_end" and densify_until is not None:
+            return max(self.warmup, int(densify_until))
+        return self.warmup
+
     @property
     def loss_weights(self) -> DegradationLossWeights:
         return DegradationLossWeights(

@@ -36,7 +36,8 @@ from gsmsdr_ns.blur.maan import host_checked_view_ids
 from gsmsdr_ns.blur.plan import DegradationPlan, crop_margin
 from gsmsdr_ns.blur.preview import coarsen_kernels, kernel_spread, nearest_view, preview_downscale
 from gsmsdr_ns.blur.profile import DegradationProfile, ResolutionLossModel, describe_profiles, effective_factor
-from gsmsdr_ns.blur.shake import CameraShake, recorded_path
+from gsmsdr_ns.blur.recorded_shake import set_recorded_paths
+from gsmsdr_ns.blur.shake import CameraShake
 from gsmsdr_ns.blur.state_keys import LEGACY_KEY_PREFIXES, remap_legacy_keys, with_fallback_state
 from gsmsdr_ns.ops.deconvolved_loss import compose_kernels
 from gsmsdr_ns.ops.grid_kernels import GridKernels, as_dense
@@ -78,14 +79,6 @@ def _hwc(x: Tensor) -> Tensor:
     return x[0].permute(1, 2, 0)
 
 
-def _start_step(start: str, warmup: int, densify_until: Optional[int]) -> int:
-    """First step of a model part that starts at ``"warmup"`` or ``"densify_end"`` (never before ``warmup``; at
-    ``warmup`` when ``densify_until`` is unknown)."""
-    if start == "densify_end" and densify_until is not None:
-        return max(warmup, int(densify_until))
-    return warmup
-
-
 class DegradationModel(nn.Module):
     """The degradation models of a set of training images, built only for the effects their profiles call for.
 
@@ -99,10 +92,8 @@ class DegradationModel(nn.Module):
         densify_until: the step the Gaussians stop densifying (splatfacto's ``stop_split_at``), where the thin lens
             starts when the config's ``thin_lens_start`` is ``"densify_end"`` (and the shake paths' translations
             when ``shake_translation_start`` is); None: unknown, both start with the field.
-        shake_records: with the config's ``shake_paths`` ``"records"``, each training image's ``motion`` record
-            (None for an image without one), in the training split's order.
-        pose_scale: the scale the dataparser applied to the poses (the recorded translations are scaled by it;
-            needed to read recorded translations).
+        shake_records, pose_scale: with the config's ``shake_paths`` ``"records"``, each training image's ``motion``
+            record (None: none) and the dataparser's pose scale (:func:`~.recorded_shake.set_recorded_paths`).
 
     Attributes (None when no image needs them): ``camera_shake`` (:class:`CameraShake`), ``thin_lens``
     (:class:`ThinLensDefocus`), ``blur_field`` (:class:`BlurField`), ``hpko`` (:class:`HPKOScheduler`),
@@ -130,9 +121,9 @@ class DegradationModel(nn.Module):
         super().__init__()
         self.profiles: List[DegradationProfile] = list(profiles)
         self.config = config = DegradationConfig() if config is None else config
-        self.lens_start = _start_step(config.thin_lens_start, config.warmup, densify_until)
+        self.lens_start = config.start_step(config.thin_lens_start, densify_until)
         """First step the thin lens runs (:attr:`DegradationConfig.thin_lens_start`)."""
-        self.shake_translation_start = _start_step(config.shake_translation_start, config.warmup, densify_until)
+        self.shake_translation_start = config.start_step(config.shake_translation_start, densify_until)
         """First step the shake paths translate (:attr:`DegradationConfig.shake_translation_start`)."""
         self.preview_max_side = int(preview_max_side)
         self.blur_field: Optional[BlurField] = None
@@ -173,43 +164,13 @@ class DegradationModel(nn.Module):
                 occlusion=config.shake_occlusion,
             )
         if self.camera_shake is not None and config.shake_paths == "records":
-            self._set_recorded_paths(shake_records, pose_scale)
+            set_recorded_paths(self.camera_shake, self.profiles, shake_records, pose_scale)
         mixres = [p for p in self.profiles if p.needs_resolution_model]
         if mixres:
             upsample = Counter(p.mixres_upsample for p in mixres).most_common(1)[0][0]
             self.resolution_model = ResolutionLossModel(
                 num_views=num_views, kernel_size=config.resolution_kernel_size, upsample=upsample
             )
-
-    def _set_recorded_paths(
-        self, records: Optional[Sequence[Optional[Mapping[str, Any]]]], pose_scale: Optional[float]
-    ) -> None:
-        """``shake_paths`` records: every shaken view's path from its ``motion`` record, not trained."""
-        assert self.camera_shake is not None
-        if records is None or len(records) != len(self.profiles):
-            raise ValueError(
-                f"shake_paths 'records' needs one motion record per training view ({len(self.profiles)}), got "
-                f"{'none' if records is None else len(records)}"
-            )
-        translate = self.camera_shake.translation_coefficients is not None
-        for view, (profile, record) in enumerate(zip(self.profiles, records)):
-            if not profile.motion:
-                continue
-            if record is None or "rotvecs" not in record or not profile.exact_pose:
-                raise ValueError(
-                    f"shake_paths 'records': training view {view} has no recorded shake path at an exact "
-                    "mid-exposure pose (only generated and gsmsdr-degrade scenes record one); use shake_paths 'learnt'"
-                )
-            if translate and record.get("translations") is not None and pose_scale is None:
-                raise ValueError(
-                    "shake_paths 'records': the dataparser gives no pose scale (metadata 'pose_scale') to bring the "
-                    "recorded translations into the scene's units; use gsmsdr's deblur or scene dataparser"
-                )
-            times, rotvecs, translations = recorded_path(record, 1.0 if pose_scale is None else pose_scale)
-            if translate and translations is None:
-                translations = torch.zeros_like(rotvecs)  # a rotation-only record: the camera did not move
-            self.camera_shake.set_path(view, times, rotvecs, translations if translate else None)
-        self.camera_shake.requires_grad_(False)
 
     # -- description and state ------------------------------------------------------------------------------
 

@@ -17,7 +17,7 @@ one module (:class:`CameraShake`) holding the coefficients.
 
 from __future__ import annotations
 
-from typing import Any, Callable, Mapping, Optional, Tuple
+from typing import Callable, Optional, Tuple
 
 import torch
 from kornia.color import linear_rgb_to_rgb, rgb_to_linear_rgb
@@ -35,7 +35,6 @@ __all__ = [
     "apply_camera_shake_with_depth",
     "parallax_rotvecs",
     "path_coefficients",
-    "recorded_path",
     "rotation_homographies",
     "shake_basis",
     "shake_mean_kernel",
@@ -97,27 +96,6 @@ def path_coefficients(times: Tensor, values: Tensor) -> Tensor:
     coefficients = values.new_zeros((3, values.shape[1]), dtype=torch.float64)
     coefficients[:used] = torch.linalg.lstsq(basis, values.to(torch.float64)).solution
     return coefficients
-
-
-def recorded_path(record: Mapping[str, Any], pose_scale: float = 1.0) -> Tuple[Tensor, Tensor, Optional[Tensor]]:
-    """The true path of a degradation record's ``motion`` effect (``gsmsdr-synth`` / ``gsmsdr-degrade`` write
-    ``times`` in (0, 1), camera-to-reference ``rotvecs`` and, for re-rendered shake, ``translations``) in the
-    conventions :func:`shake_sample_grid` reads: the reference camera's rotation at each sample and its translation
-    times ``pose_scale`` (the scene's units scaled as the dataparser scaled the poses).
-
-    Returns:
-        times [S] in [-1/2, 1/2] (float64), rotvecs [S, 3] (radians), translations [S, 3] or None (float64).
-    """
-    if "rotvecs" not in record or record.get("pose", "camera_to_reference") != "camera_to_reference":
-        raise ValueError("a recorded shake path needs the record's camera-to-reference 'rotvecs'")
-    rotvecs = torch.tensor(record["rotvecs"], dtype=torch.float64)
-    count = rotvecs.shape[0]
-    times = record.get("times")
-    tau = torch.tensor(times, dtype=torch.float64) if times is not None else (torch.arange(count) + 0.5) / count
-    translations = record.get("translations")
-    moved = None if translations is None else torch.tensor(translations, dtype=torch.float64) * float(pose_scale)
-    # X_ref = R_c X_t + c_t: the sample's camera reads the reference render turned by R_c^T (rotvec -r), moved by c_t
-    return tau - 0.5, -rotvecs, moved
 
 
 def rotation_homographies(K: Tensor, rotvecs: Tensor) -> Tensor:

@@ -30,7 +30,8 @@ import torch
 import tyro
 from torch import Tensor
 
-from gsmsdr_ns.blur.shake import path_coefficients, recorded_path, shake_splat_positions
+from gsmsdr_ns.blur.recorded_shake import recorded_path
+from gsmsdr_ns.blur.shake import path_coefficients, shake_splat_positions
 
 COLUMNS = ("true extent", "error", "offset", "error without offset")
 """The table's columns after the view's name."""
