@@ -166,7 +166,7 @@ def learnt_shake_paths(run) -> Optional[Dict[str, Any]]:
     with the recorded paths."""
     import torch
 
-    from gsmsdr_ns.blur.shake import parallax_rotvecs, shake_sample_times
+    from gsmsdr_ns.blur.shake import shake_sample_times
 
     model = run.model
     shake = model.degradation.camera_shake
@@ -186,9 +186,9 @@ def learnt_shake_paths(run) -> Optional[Dict[str, Any]]:
             median_depth = None
             if shake.parallax and shake.translation_coefficients is not None:
                 camera = cameras[index : index + 1].to(model.device)
-                depth = model.get_outputs(camera)["depth"]
-                median_depth = float(depth.clamp_min(1e-3).median())
-                rotvecs = rotvecs + parallax_rotvecs(translations, torch.tensor(median_depth))
+                depth = model.get_outputs(camera)["depth"][..., 0].clamp_min(1e-3)
+                median_depth = float(depth.median())
+                rotvecs = shake.warped_rotvecs(ids, centred, translations, depth)
             views.append({"name": names[index], "motion": profile.motion, "centred": centred,
                           "median_depth": median_depth, "rotvecs": rotvecs.cpu().tolist(),
                           "translations": translations.cpu().tolist()})  # fmt: skip

@@ -34,6 +34,7 @@ __all__ = [
     "apply_camera_shake_occluding",
     "apply_camera_shake_with_depth",
     "parallax_rotvecs",
+    "path_basis",
     "path_coefficients",
     "rotation_homographies",
     "shake_basis",
@@ -61,23 +62,27 @@ def shake_sample_times(num_samples: int) -> Tensor:
     return (torch.arange(num_samples, dtype=torch.float64) + 0.5) / num_samples - 0.5
 
 
+def path_basis(times: Tensor) -> Tensor:
+    """The cubic path basis through the pose, ``tau``, ``tau^2``, ``tau^3``, at ``times`` [S] in [-1/2, 1/2] -> [S, 3]
+    (a path's coefficients [3, D] times it give the path [S, D])."""
+    return torch.stack([times, times**2, times**3], dim=1)
+
+
 def shake_basis(num_samples: int, centred: bool, dtype: torch.dtype = torch.float32) -> Tensor:
     """Polynomial basis of a path sampled at :func:`shake_sample_times` -> [T, 3].
 
     ``centred``: columns of zero mean over the samples (the pose is the path's centre); else each column is 0 at
     mid-exposure (the pose lies on the path).
     """
-    tau = shake_sample_times(num_samples)
-    basis = torch.stack([tau, tau**2, tau**3], dim=1)
+    basis = path_basis(shake_sample_times(num_samples))
     if centred:
         basis = basis - basis.mean(dim=0, keepdim=True)
     return basis.to(dtype)
 
 
 def path_coefficients(times: Tensor, values: Tensor) -> Tensor:
-    """Least-squares coefficients of the path through the pose (:func:`shake_basis`'s ``centred`` False columns,
-    ``tau``, ``tau^2``, ``tau^3``) closest to a sampled path. A path of fewer than 3 samples (a short shake's record)
-    fits the first columns only, the others 0.
+    """Least-squares coefficients of the path through the pose (:func:`path_basis`) closest to a sampled path. A path
+    of fewer than 3 samples (a short shake's record) fits the first columns only, the others 0.
 
     Args:
         times: [S] times of the samples in the exposure [-1/2, 1/2] (0: the pose), S >= 1.
@@ -90,9 +95,8 @@ def path_coefficients(times: Tensor, values: Tensor) -> Tensor:
             f"a sampled path needs times [S] and values [S, D] with S >= 1, got {tuple(times.shape)} and "
             f"{tuple(values.shape)}"
         )
-    tau = times.to(torch.float64)
-    used = min(int(tau.shape[0]), 3)
-    basis = torch.stack([tau, tau**2, tau**3][:used], dim=1)  # [S, used]
+    used = min(int(times.shape[0]), 3)
+    basis = path_basis(times.to(torch.float64))[:, :used]  # [S, used]
     coefficients = values.new_zeros((3, values.shape[1]), dtype=torch.float64)
     coefficients[:used] = torch.linalg.lstsq(basis, values.to(torch.float64)).solution
     return coefficients
@@ -411,6 +415,13 @@ class CameraShake(nn.Module):
         """Rotation vectors of view ``view_ids[0]``'s path -> [T, 3] (radians)."""
         return RADIANS_PER_UNIT * (self._basis(centred) @ self.coefficients[view_ids[0]])
 
+    def warped_rotvecs(self, view_ids: Tensor, centred: bool, translations: Tensor, depth: Tensor) -> Tensor:
+        """The rotations [T, 3] (radians) view ``view_ids[0]``'s render is warped by alongside ``translations``
+        [T, 3]: with ``parallax``, its rotation path offset by :func:`parallax_rotvecs` at the median of ``depth``
+        (the render's, [H, W], > 0); else the rotation path itself."""
+        rotvecs = self.rotvecs(view_ids, centred)
+        return rotvecs + parallax_rotvecs(translations, depth.median()) if self.parallax else rotvecs
+
     def translations(self, view_ids: Tensor, centred: bool) -> Tensor:
         """Camera translations along view ``view_ids[0]``'s path -> [T, 3] (scene units); zeros without
         ``translation``."""
@@ -437,15 +448,13 @@ class CameraShake(nn.Module):
         """The render ``image`` [1, C, H, W] (intrinsics ``K`` [3, 3]) blurred along view ``view_ids`` [1]'s path;
         with ``translation`` and ``translate``, ``depth`` [H, W] is the render's depth (not differentiated through).
         ``translate`` False: the rotation path alone (the translations get no gradient)."""
-        rotvecs = self.rotvecs(view_ids, centred)
         if self.translation_coefficients is None or not translate:
-            return apply_camera_shake(image, rotation_homographies(K, rotvecs), linear_light)
+            return apply_camera_shake(image, rotation_homographies(K, self.rotvecs(view_ids, centred)), linear_light)
         if depth is None:
             raise ValueError("a camera shake path with translation needs the render's depth")
         depth = depth.detach().clamp_min(1e-3)
         translations = self.translations(view_ids, centred)
-        if self.parallax:
-            rotvecs = rotvecs + parallax_rotvecs(translations, depth.median())
+        rotvecs = self.warped_rotvecs(view_ids, centred, translations, depth)
         if self.occlusion:
             return apply_camera_shake_occluding(image, K, rotvecs, translations, depth, linear_light)
         grid = shake_sample_grid(K, rotvecs, translations, depth)

@@ -31,7 +31,8 @@ import tyro
 from torch import Tensor
 
 from gsmsdr_ns.blur.recorded_shake import recorded_path
-from gsmsdr_ns.blur.shake import path_coefficients, shake_splat_positions
+from gsmsdr_ns.blur.shake import path_basis, path_coefficients, shake_splat_positions
+from tools.shake.shake_fit import scene_intrinsics
 
 COLUMNS = ("true extent", "error", "offset", "error without offset")
 """The table's columns after the view's name."""
@@ -43,7 +44,7 @@ def path_distances(K: Tensor, depth: Tensor, times: Tensor, learnt: Dict[str, Te
     units the learnt translations are in), ``times`` [T] the learnt samples, ``learnt`` its ``rotvecs`` and
     ``translations`` [T, 3], ``record`` the view's motion record."""
     record_times, rotvecs, translations = recorded_path(record, pose_scale)
-    basis = torch.stack([times, times**2, times**3], dim=1)
+    basis = path_basis(times)
     true_rot = basis @ path_coefficients(record_times, rotvecs)
     true_move = basis @ path_coefficients(record_times, translations) if translations is not None else 0 * true_rot
     K, depth = K.double(), depth.double()
@@ -82,9 +83,7 @@ class PathError:
             raise SystemExit(f"{self.run}: no shake_paths (a run of a shake model with the suite's train_fit on)")
         if paths.get("pose_scale") is None:
             raise SystemExit(f"{self.run}: shake_paths has no pose_scale (its dataparser gave none)")
-        intrinsics = json.loads((self.data / "scene.json").read_text())["intrinsics"]
-        K = torch.tensor([[intrinsics["fx"], 0.0, intrinsics["cx"]], [0.0, intrinsics["fy"], intrinsics["cy"]],
-                          [0.0, 0.0, 1.0]], dtype=torch.float64)  # fmt: skip
+        K = scene_intrinsics(self.data, torch.float64)
         records = json.loads((self.data / "degradation.json").read_text())["images"]
         scale, times = float(paths["pose_scale"]), torch.tensor(paths["times"], dtype=torch.float64)
         print(f"{self.run.name} against the true paths of {self.data}: pixel distances (RMS over the view's pixels at "

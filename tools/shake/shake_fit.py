@@ -189,6 +189,14 @@ def view_fits(sharp: Tensor, photo: Tensor, K: Tensor, record: Dict, depth: Tens
     return {m: psnr(shown(blurred[m]()), photo, margin) for m in models}
 
 
+def scene_intrinsics(scene: Path, dtype: torch.dtype = torch.float32) -> Tensor:
+    """A generated scene's pinhole intrinsics [3, 3] (its ``scene.json``; principal point in the pixel-edge
+    convention)."""
+    intrinsics = json.loads((scene / "scene.json").read_text())["intrinsics"]
+    return torch.tensor([[intrinsics["fx"], 0.0, intrinsics["cx"]], [0.0, intrinsics["fy"], intrinsics["cy"]],
+                         [0.0, 0.0, 1.0]], dtype=dtype)  # fmt: skip
+
+
 def _image(path: Path) -> Tensor:
     return torch.from_numpy(read_image_float(path)).permute(2, 0, 1)[None]
 
@@ -210,9 +218,7 @@ class ShakeFit:
 
     def main(self) -> None:
         torch.set_num_threads(1)
-        intrinsics = json.loads((self.data / "scene.json").read_text())["intrinsics"]
-        K = torch.tensor([[intrinsics["fx"], 0.0, intrinsics["cx"]], [0.0, intrinsics["fy"], intrinsics["cy"]],
-                          [0.0, 0.0, 1.0]])  # fmt: skip
+        K = scene_intrinsics(self.data)
         records = json.loads((self.data / "degradation.json").read_text())["images"]
         names = [n for n, r in sorted(records.items()) if r["split"] == "train" and "motion" in r.get("effects", {})]
         if not names:
