@@ -183,7 +183,7 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
                             "full-margin", "full-shake", "full-true",
                             "full-per-pixel", "full-fallback", "full-fallback-coarse", "full-anchor", "full-lens-early",
                             "full-grid4k", "full-cells4", "cpu-poses", "cpu-shake", "cpu-kernels", "cpu-shake-decay",
-                            "cpu-decay", "cpu-shake17", "cpu-shake-move", "cpu-shake-move-late",
+                            "cpu-decay", "cpu-late-decay", "cpu-shake17", "cpu-shake-move", "cpu-shake-move-late",
                             "cpu-shake-parallax", "cpu-shake-occlusion", "cpu-shake-occlusion17",
                             "cpu-shake-true-paths", "cpu-kernel-centred", "cpu-path-weighted", "cpu-path-weighted-d05",
                             "cpu-path-weighted-eps04", "cpu-paper-loss", "-view", "view",
@@ -269,8 +269,9 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     # learning-rate decays: the suite's schedule scales them to its steps
     preset = METHODS["gsmsdr-cpu"].make_config(tmp_path, tmp_path / "out")
     TrainingSchedule.bench(1200).apply(preset)
-    for name, decayed in (("gsmsdr-cpu", set()), ("cpu-shake-decay", {"blur_shake"}),
-                          ("cpu-decay", {"blur_shake", "blur_view_kernels"})):  # fmt: skip
+    for name, decayed, hold in (("gsmsdr-cpu", set(), 0.0), ("cpu-shake-decay", {"blur_shake"}, 0.0),
+                                ("cpu-decay", {"blur_shake", "blur_view_kernels"}, 0.0),
+                                ("cpu-late-decay", {"blur_shake", "blur_view_kernels"}, 0.6)):  # fmt: skip
         config = METHODS[name].make_config(tmp_path, tmp_path / "out")
         TrainingSchedule.bench(1200).apply(config)
         assert repr(config.pipeline.model) == repr(preset.pipeline.model)
@@ -280,6 +281,7 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
             if scheduler is not None:
                 assert (scheduler.max_steps, scheduler.warmup_steps) == (1200, 0)
                 assert scheduler.lr_final == config.optimizers[group]["optimizer"].lr / 100
+                assert getattr(scheduler, "hold_fraction", 0.0) == hold
     assert not options["full"].thin_lens_for_unknown_kind
     paper_loss, full = options["full-paper-loss"], options["full"]
     assert paper_loss.deconvolved_loss_weight == 0 < full.deconvolved_loss_weight

@@ -144,3 +144,30 @@ def test_decay_fraction_reaches_the_final_rate_early_and_holds_it() -> None:
     assert rates[0] == pytest.approx(group["optimizer"].lr)
     assert rates[700] > 1.2 * final
     assert rates[750] == pytest.approx(final) and rates[999] == pytest.approx(final)
+
+
+def test_late_decay_holds_the_rate_then_decays_to_its_final_one(tmp_path: Path) -> None:
+    """``cpu-late-decay`` at a 1000-step suite schedule: the shake paths' rate (the scheduler as nerfstudio's
+    optimizers build it) stays at the preset's for 0.6 of the steps, then falls exponentially to 1 / 100 of it at
+    the last step, and a hold outside [0, 1) is refused."""
+    import torch
+
+    from gsmsdr_ns.plugin.lr_schedulers import HeldExponentialDecaySchedulerConfig
+
+    config = method_spec("cpu-late-decay").make_config(tmp_path, tmp_path / "out")
+    TrainingSchedule.bench(1000).apply(config)
+    group = config.optimizers["blur_shake"]
+    lr = group["optimizer"].lr
+    optimizer = torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=lr)
+    scheduler = group["scheduler"].setup().get_scheduler(optimizer, lr)
+    rates = []
+    for _ in range(1100):
+        rates.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step()
+    assert rates[0] == rates[600] == pytest.approx(lr)
+    assert rates[601] < lr and rates[800] == pytest.approx(lr / 10, rel=1e-6)
+    assert all(a > b for a, b in zip(rates[600:1000], rates[601:1001]))
+    assert rates[1000] == rates[1099] == pytest.approx(lr / 100)
+    with pytest.raises(ValueError, match="hold_fraction"):
+        HeldExponentialDecaySchedulerConfig(hold_fraction=1.0)

@@ -45,15 +45,20 @@ def set_pose_refinement(model, views: str) -> None:
         model.camera_optimizer_views = views
 
 
-def set_lr_decay(config, group: str, lr_final: float) -> None:
+def set_lr_decay(config, group: str, lr_final: float, hold_fraction: float = 0.0) -> None:
     """Give the optimizer group ``group`` of a TrainerConfig an exponential decay to ``lr_final`` over its steps
-    (no warm-up)."""
+    (no warm-up), starting after ``hold_fraction`` of them (the preset's rate held until then)."""
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+
+    from gsmsdr_ns.plugin.lr_schedulers import HeldExponentialDecaySchedulerConfig
 
     if group not in config.optimizers:
         raise ValueError(f"no optimizer group {group!r}; valid: {', '.join(sorted(config.optimizers))}")
-    config.optimizers[group]["scheduler"] = ExponentialDecaySchedulerConfig(
-        lr_final=lr_final, max_steps=config.max_num_iterations, warmup_steps=0
+    steps = config.max_num_iterations
+    config.optimizers[group]["scheduler"] = (
+        HeldExponentialDecaySchedulerConfig(lr_final=lr_final, max_steps=steps, hold_fraction=hold_fraction)
+        if hold_fraction > 0
+        else ExponentialDecaySchedulerConfig(lr_final=lr_final, max_steps=steps, warmup_steps=0)
     )
 
 
@@ -87,6 +92,8 @@ class MethodSpec:
     lr_final: Tuple[Tuple[str, float], ...] = ()
     """(optimizer group, final rate): the group's rate decays exponentially from the preset's to this one over the
     run (the suite's schedule scales the decay to its steps)."""
+    lr_hold_fraction: float = 0.0
+    """With ``lr_final``: the groups keep the preset's rate for this fraction of the run, then decay."""
     model_overrides: Tuple[Tuple[str, Any], ...] = ()
     """Fields replaced on the preset's ``GSMSDRModelConfig`` itself (the Gaussian model's options, such as
     ``degraded_densify_grad_scale``); an option it does not have raises ValueError."""
@@ -102,7 +109,7 @@ class MethodSpec:
         if self.pose_refinement is not None:
             set_pose_refinement(model, self.pose_refinement)
         for group, final in self.lr_final:
-            set_lr_decay(config, group, final)
+            set_lr_decay(config, group, final, self.lr_hold_fraction)
         if self.model_overrides:
             config.pipeline.model = replace_model_options(config.pipeline.model, dict(self.model_overrides))
         return config

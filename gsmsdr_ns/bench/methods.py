@@ -153,6 +153,17 @@ METHODS: Dict[str, MethodSpec] = {
             "gsmsdr-cpu with the rotation paths' and per-view kernels' learning rates decayed 100x over the run",
             lr_final=(("blur_shake", 1e-3), ("blur_view_kernels", 3e-4)),
         ),  # fmt: skip
+        MethodSpec(
+            "cpu-late-decay",
+            "gsmsdr-cpu, shake and kernel rates decayed late",
+            "gsmsdr-cpu",
+            (),
+            False,
+            "gsmsdr-cpu with the shake paths' and per-view kernels' learning rates held until 0.6 of the run (full "
+            "resolution starts at 0.5), then decayed 100x by its end",
+            lr_final=(("blur_shake", 1e-3), ("blur_view_kernels", 3e-4)),
+            lr_hold_fraction=0.6,
+        ),  # fmt: skip
         make_method(
             "cpu-shake17",
             "gsmsdr-cpu, 17 shake samples",
