@@ -164,6 +164,17 @@ METHODS: Dict[str, MethodSpec] = {
             lr_final=(("blur_shake", 1e-3), ("blur_view_kernels", 3e-4)),
             lr_hold_fraction=0.6,
         ),  # fmt: skip
+        MethodSpec(
+            "cpu-late-path-decay",
+            "gsmsdr-cpu, shake rates decayed late",
+            "gsmsdr-cpu",
+            (),
+            False,
+            "cpu-late-decay with the per-view kernels at their constant rate: the shake paths' rate alone held until "
+            "0.6 of the run, then decayed 100x by its end",
+            lr_final=(("blur_shake", 1e-3),),
+            lr_hold_fraction=0.6,
+        ),  # fmt: skip
         make_method(
             "cpu-shake17",
             "gsmsdr-cpu, 17 shake samples",
