@@ -183,8 +183,9 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
                             "full-margin", "full-shake", "full-true",
                             "full-per-pixel", "full-fallback", "full-fallback-coarse", "full-anchor", "full-lens-early",
                             "full-grid4k", "full-cells4", "cpu-poses", "cpu-shake", "cpu-kernels", "cpu-shake-decay",
-                            "cpu-decay", "cpu-late-decay", "cpu-late-path-decay", "cpu-shake17", "cpu-shake-move",
-                            "cpu-shake-move-late", "cpu-shake-parallax", "cpu-shake-occlusion", "cpu-shake-occlusion17",
+                            "cpu-decay", "cpu-late-decay", "cpu-late-path-decay", "cpu-late-kernel-decay",
+                            "cpu-shake17", "cpu-shake-move", "cpu-shake-move-late", "cpu-shake-parallax",
+                            "cpu-shake-occlusion", "cpu-shake-occlusion17",
                             "cpu-shake-true-paths", "cpu-kernel-centred", "cpu-path-weighted", "cpu-path-weighted-d05",
                             "cpu-path-weighted-eps04", "cpu-paper-loss", "-view", "view",
                             "view-k25", "view-k33", "view-k49", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite",
@@ -272,7 +273,8 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     for name, decayed, hold in (("gsmsdr-cpu", set(), 0.0), ("cpu-shake-decay", {"blur_shake"}, 0.0),
                                 ("cpu-decay", {"blur_shake", "blur_view_kernels"}, 0.0),
                                 ("cpu-late-decay", {"blur_shake", "blur_view_kernels"}, 0.6),
-                                ("cpu-late-path-decay", {"blur_shake"}, 0.6)):  # fmt: skip
+                                ("cpu-late-path-decay", {"blur_shake"}, 0.6),
+                                ("cpu-late-kernel-decay", {"blur_view_kernels"}, 0.6)):  # fmt: skip
         config = METHODS[name].make_config(tmp_path, tmp_path / "out")
         TrainingSchedule.bench(1200).apply(config)
         assert repr(config.pipeline.model) == repr(preset.pipeline.model)

@@ -175,6 +175,17 @@ METHODS: Dict[str, MethodSpec] = {
             lr_final=(("blur_shake", 1e-3),),
             lr_hold_fraction=0.6,
         ),  # fmt: skip
+        MethodSpec(
+            "cpu-late-kernel-decay",
+            "gsmsdr-cpu, kernel rates decayed late",
+            "gsmsdr-cpu",
+            (),
+            False,
+            "cpu-late-decay with the shake paths at their constant rate: the per-view kernels' rate alone held until "
+            "0.6 of the run, then decayed 100x by its end",
+            lr_final=(("blur_view_kernels", 3e-4),),
+            lr_hold_fraction=0.6,
+        ),  # fmt: skip
         make_method(
             "cpu-shake17",
             "gsmsdr-cpu, 17 shake samples",
