@@ -185,7 +185,7 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
                             "full-grid4k", "full-cells4", "cpu-poses", "cpu-shake", "cpu-kernels", "cpu-shake-decay",
                             "cpu-decay", "cpu-late-decay", "cpu-late-path-decay", "cpu-late-kernel-decay",
                             "cpu-shake17", "cpu-shake-move", "cpu-shake-move-late", "cpu-shake-parallax",
-                            "cpu-shake-occlusion", "cpu-shake-occlusion17",
+                            "cpu-shake-occlusion", "cpu-shake-occlusion17", "cpu-shake-true-occlusion17",
                             "cpu-shake-true-paths", "cpu-kernel-centred", "cpu-path-weighted", "cpu-path-weighted-d05",
                             "cpu-path-weighted-eps04", "cpu-paper-loss", "-view", "view",
                             "view-k25", "view-k33", "view-k49", "-gaka", "-safm", "-mca", "-rgbd", "gsmsdr-lite",
@@ -251,6 +251,9 @@ def test_method_table_maps_to_config_switches(tmp_path: Path) -> None:
     true_paths = options["cpu-shake-true-paths"]
     assert true_paths.shake_paths == "records" and options["gsmsdr-cpu"].shake_paths == "learnt"
     assert true_paths.shake_translation and not true_paths.shake_parallax
+    true_occluding17 = options["cpu-shake-true-occlusion17"]
+    assert true_occluding17.shake_paths == "records" and true_occluding17.shake_occlusion
+    assert true_occluding17.shake_samples == 17 and not true_occluding17.shake_parallax
     assert (
         options["cpu-kernel-centred"].kernel_centre_after_shake and not options["gsmsdr-cpu"].kernel_centre_after_shake
     )
