@@ -42,8 +42,13 @@ def _view_kernels_method(sizes: Tuple[int, int, int]) -> MethodSpec:
     )
 
 
-# final learning rates of the degradation groups a late decay ends at (1/100 of the presets' constant rates)
-_LATE_DECAY_FINAL_LR = {"blur_shake": 1e-3, "blur_view_kernels": 3e-4}
+# final learning rates the bench's decays end at: 1/100 of the presets' constant rates for these groups
+_DECAYED_FINAL_LR = {"blur_shake": 1e-3, "blur_view_kernels": 3e-4}
+
+
+def _decayed_groups(groups: Tuple[str, ...]) -> Tuple[Tuple[str, float], ...]:
+    """``MethodSpec.lr_final`` for decaying ``groups`` to :data:`_DECAYED_FINAL_LR`."""
+    return tuple((group, _DECAYED_FINAL_LR[group]) for group in groups)
 
 
 def _late_decay_method(name: str, what: str, doc_start: str, groups: Tuple[str, ...]) -> MethodSpec:
@@ -56,7 +61,7 @@ def _late_decay_method(name: str, what: str, doc_start: str, groups: Tuple[str, 
         (),
         False,
         f"{doc_start} held until 0.6 of the run (full resolution starts at 0.5), then decayed 100x by its end",
-        lr_final=tuple((group, _LATE_DECAY_FINAL_LR[group]) for group in groups),
+        lr_final=_decayed_groups(groups),
         lr_hold_fraction=0.6,
     )
 
@@ -161,7 +166,7 @@ METHODS: Dict[str, MethodSpec] = {
             (),
             False,
             "gsmsdr-cpu with the camera rotation paths' learning rate decayed 100x over the run (1e-1 to 1e-3)",
-            lr_final=(("blur_shake", 1e-3),),
+            lr_final=_decayed_groups(("blur_shake",)),
         ),  # fmt: skip
         MethodSpec(
             "cpu-decay",
@@ -170,7 +175,7 @@ METHODS: Dict[str, MethodSpec] = {
             (),
             False,
             "gsmsdr-cpu with the rotation paths' and per-view kernels' learning rates decayed 100x over the run",
-            lr_final=(("blur_shake", 1e-3), ("blur_view_kernels", 3e-4)),
+            lr_final=_decayed_groups(("blur_shake", "blur_view_kernels")),
         ),  # fmt: skip
         _late_decay_method(
             "cpu-late-decay",
