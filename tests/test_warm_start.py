@@ -36,7 +36,7 @@ def test_the_warm_start_begins_at_the_bounds_scene_and_reuses_its_gaussians(tmp_
     suite, out = write_suite(tmp_path), tmp_path / "out"
     WarmStart(suite=suite, out=out, start_step=START, eval_every=5).main()
     bound = torch.load(out / "bound.pt", map_location="cpu")
-    result = json.loads((out / "warm_start.json").read_text())
+    result = json.loads((out / "warm_start-cpu-shake-true-paths.json").read_text())
     curve = result["curve"]
     assert [p["step"] for p in curve] == [30, 35, 40]
     first = curve[0]
@@ -51,7 +51,7 @@ def test_the_warm_start_begins_at_the_bounds_scene_and_reuses_its_gaussians(tmp_
     # a second call trains no bound: it reads bound.pt, and the start is the same
     stamp = (out / "bound.pt").stat().st_mtime_ns
     WarmStart(suite=suite, out=out, start_step=START, eval_every=10).main()
-    again = json.loads((out / "warm_start.json").read_text())["curve"]
+    again = json.loads((out / "warm_start-cpu-shake-true-paths.json").read_text())["curve"]
     assert (out / "bound.pt").stat().st_mtime_ns == stamp
     assert abs(again[0]["psnr"] - first["psnr"]) < 1e-4
     assert "| 30 |" in capsys.readouterr().out

@@ -18,7 +18,7 @@ Gaussians trained on the sharp twin (prints a table). Run from the repository ro
 
 If the test PSNR stays at the bound's while the fit rises, the blurred loss has the sharp scene as a good optimum
 and what keeps a run from scratch below the bound is the way there; if it falls while the fit rises, the shaken
-photos' loss prefers a scene that is wrong for the test views. ``<out>/warm_start.json`` keeps the curve.
+photos' loss prefers a scene that is wrong for the test views. ``<out>/warm_start-<method>.json`` keeps the curve.
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ class WarmStart:
     suite: Path
     """A suite file with one generated scene (its scene, schedule, steps, threads and scene root are used)."""
     out: Path
-    """Output folder: bound.pt (the bound's Gaussians, reused), warm_start.json, nerfstudio work files."""
+    """Output folder: bound.pt (the bound's Gaussians, reused), warm_start-<method>.json, nerfstudio work files."""
     method: str = "cpu-shake-true-paths"
     """The blur model trained on from the bound's Gaussians."""
     bound_method: str = "sharp"
@@ -152,7 +152,7 @@ class WarmStart:
         bound = {k: v for k, v in saved.items() if k != "gaussians"}
         result = {"suite": str(self.suite), "method": self.method, "bound": bound, "start_step": self.start_step,
                   "threads": suite.threads, "curve": curve}  # fmt: skip
-        _write_atomic(self.out / "warm_start.json", lambda p: p.write_text(json.dumps(result, indent=1)))
+        _write_atomic(self.out / f"warm_start-{self.method}.json", lambda p: p.write_text(json.dumps(result, indent=1)))
         print("| step | test PSNR | per test view | training fit |\n| ---: | ---: | --- | ---: |")
         for point in curve:
             fit = f"{point['train_psnr']:.2f}" if "train_psnr" in point else ""
